@@ -1,0 +1,14 @@
+"""python -m stages.collect +task=<suite> source=expert episodes_per_task=5"""
+import hydra
+from omegaconf import DictConfig
+
+from stages.collect.run import run
+
+
+@hydra.main(config_path="../../conf", config_name="collect", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    run(cfg)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,102 @@
+"""Stage `evaluate`: a policy's success in the real LIBERO simulator, per task and per suite,
+from the benchmark's fixed init states, under a chosen termination mode."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig
+
+from stages.collect.run import resolve_policy
+from worldenv_core.envs.collection import PolicyEvalJob, evaluate_policy_task
+from worldenv_core.envs.tasks import resolve_task_ids
+from worldenv_core.manifest import StageRun
+from worldenv_core.parallel import run_jobs
+from worldenv_core.stage import ConfigError, experiment, positive_int, require_task, resolved, seed_everything, setup_logging
+from worldenv_core.viz import montage_video
+
+log = logging.getLogger("worldenv.evaluate")
+TERMINATIONS = ("oracle", "fixed")
+JOB_SIZE = 10  # init states per job: small enough to spread a task over workers
+
+
+def validate(cfg: DictConfig) -> None:
+    require_task(cfg)
+    if cfg.termination not in TERMINATIONS:
+        raise ConfigError(f"termination must be one of {', '.join(TERMINATIONS)}, got {cfg.termination!r}")
+    positive_int(cfg, "init_states")
+    positive_int(cfg, "videos_per_task", allow_zero=True)
+    if cfg.init_states > 50:
+        raise ConfigError(f"init_states is at most 50 (the benchmark has 50 per task), got {cfg.init_states}")
+    if cfg.workers is not None:
+        positive_int(cfg, "workers")
+
+
+def run(cfg: DictConfig) -> dict:
+    setup_logging()
+    validate(cfg)
+    task = cfg.task
+    manifest = experiment(cfg)
+    seed_everything(cfg.seed)
+    run_dir = (Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized()
+               else manifest.root / "evaluate" / cfg.termination)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    tags = {"task": task.name, "scale": cfg.scale.name, "termination": cfg.termination}
+    with StageRun(manifest, "evaluate", tags, resolved(cfg)) as stage:
+        policy_path = resolve_policy(cfg, stage)
+        inits = list(range(cfg.init_states))
+        jobs = [PolicyEvalJob(policy_path=policy_path, suite=task.suite, task_id=t, init_ids=tuple(inits[i:i + JOB_SIZE]),
+                              cameras=tuple(task.cameras), image_size=task.image_size, chunk=task.chunk,
+                              max_steps=task.max_steps, termination=cfg.termination,
+                              video_ids=tuple(inits[:cfg.videos_per_task]))
+                for t in resolve_task_ids(task.suite, task.task_ids) for i in range(0, len(inits), JOB_SIZE)]
+        rows, videos = [], {}
+        for out in run_jobs(evaluate_policy_task, jobs, workers=cfg.workers, launcher=cfg.launcher,
+                            desc=f"evaluate {task.name} ({cfg.termination})", ray_address=cfg.ray_address,
+                            progress=cfg.progress, unit="job"):
+            rows += out["rows"]
+            for i, frames in out["videos"].items():
+                videos[(out["rows"][0]["task_id"], i)] = frames
+        summary = summarise(rows)
+        summary.update(policy=policy_path, termination=cfg.termination, init_states=cfg.init_states,
+                       report_dir=str(run_dir))
+        (run_dir / "episodes.json").write_text(json.dumps(rows, indent=1))
+        (run_dir / "results.json").write_text(json.dumps(summary, indent=2))
+        (run_dir / "results.md").write_text(markdown(summary, task.suite))
+        for name in ("results.json", "results.md", "episodes.json"):
+            stage.add_output(run_dir / name, kind="report")
+        for (tid, i), frames in sorted(videos.items()):
+            ok = next(r["success"] for r in rows if r["task_id"] == tid and r["init_state"] == i)
+            path = montage_video([frames], run_dir / "videos" / f"task{tid:02d}_init{i:02d}_{'success' if ok else 'failure'}.gif")
+            stage.add_output(path, kind="video")
+        stage.metrics.update({k: v for k, v in summary.items() if k != "per_task"})
+        print(markdown(summary, task.suite))
+    return summary
+
+
+def summarise(rows: list[dict]) -> dict:
+    per_task = []
+    for tid in sorted({r["task_id"] for r in rows}):
+        rs = [r for r in rows if r["task_id"] == tid]
+        per_task.append({"task_id": tid, "task": rs[0]["task"], "n": len(rs),
+                         "success_rate": float(np.mean([r["success"] for r in rs])),
+                         "ever_succeeded_rate": float(np.mean([r["ever_succeeded"] for r in rs])),
+                         "mean_steps": float(np.mean([r["steps"] for r in rs])),
+                         "errors": sum(r["error"] is not None for r in rs)})
+    return {"success_rate": float(np.mean([r["success"] for r in rows])),
+            "ever_succeeded_rate": float(np.mean([r["ever_succeeded"] for r in rows])),
+            "episodes": len(rows), "per_task": per_task}
+
+
+def markdown(summary: dict, suite: str) -> str:
+    lines = [f"Success on {suite} ({summary['termination']} termination, first {summary['init_states']} "
+             f"benchmark init states per task)\n",
+             "| task | name | success | reached success at some step | mean steps |", "|---|---|---|---|---|"]
+    lines += [f"| {r['task_id']} | {r['task']} | {100 * r['success_rate']:.0f}% | {100 * r['ever_succeeded_rate']:.0f}% "
+              f"| {r['mean_steps']:.0f} |" for r in summary["per_task"]]
+    lines.append(f"| all | | **{100 * summary['success_rate']:.1f}%** | {100 * summary['ever_succeeded_rate']:.1f}% | |")
+    return "\n".join(lines) + "\n"

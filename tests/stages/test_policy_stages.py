@@ -1,0 +1,86 @@
+"""train_policy -> collect source=policy -> evaluate on the tiny task, through the manifest."""
+import json
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from stages.collect.run import run as collect
+from stages.evaluate.run import run as evaluate
+from stages.train_policy.run import run as train_policy
+from worldenv_core.data.mcap_io import read_episode
+from worldenv_core.manifest import ArtefactError, Manifest
+from worldenv_core.stage import CONF_DIR, ConfigError
+
+pytestmark = [pytest.mark.sim, pytest.mark.slow]
+
+
+def cfg(stage, exp, *overrides):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose(stage, overrides=["+task=tiny", "scale=tiny", f"experiment_dir={exp}", *overrides])
+
+
+@pytest.fixture(scope="module")
+def experiment(tmp_path_factory):
+    exp = tmp_path_factory.mktemp("exp")
+    collect(cfg("collect", exp, f"data_dir={exp / 'data'}", "episodes_per_task=1", "workers=1", "progress=false",
+                "lerobot_export=false"))
+    small = ["train.steps=20", "scale_head.steps=10", "train.log_every=5", "train.checkpoint_every=10",
+             "demos_per_task=1", "policy.hidden=64", "policy.backbone.widths=[8,16,16,16]", "policy.backbone.keypoints=8"]
+    metrics = train_policy(cfg("train_policy", exp, *small))
+    return exp, metrics, small
+
+
+def test_train_policy_records_a_loadable_checkpoint_and_a_loss_plot(experiment):
+    exp, metrics, _ = experiment
+    m = Manifest(exp)
+    rec = m.latest("train_policy", task="tiny", scale="tiny")
+    assert rec.inputs == [m.latest("collect", task="tiny", source="expert").id]
+    files = {p.name for p in m.resolve(rec)}
+    assert {"model.safetensors", "config.json", "losses.png"} <= files
+    assert metrics["final_l1"] is not None and metrics["final_nll"] is not None
+
+
+def test_train_policy_resumes_from_its_last_checkpoint(experiment):
+    exp, _, small = experiment
+    # Same config -> same work dir; everything is done already, so it only re-saves.
+    metrics = train_policy(cfg("train_policy", exp, *small))
+    assert metrics["train_wall_s"] < 5
+
+
+def test_too_few_demos_is_a_clear_error(experiment):
+    exp, _, small = experiment
+    with pytest.raises(ConfigError, match="demos_per_task=3.*only"):
+        train_policy(cfg("train_policy", exp, *small[:-1], "demos_per_task=3"))
+
+
+@pytest.mark.parametrize("termination", ["oracle", "fixed"])
+def test_evaluate_in_both_termination_modes(experiment, termination):
+    exp, _, _ = experiment
+    out = evaluate(cfg("evaluate", exp, f"termination={termination}", "init_states=1", "workers=1", "progress=false"))
+    (row,) = out["per_task"]
+    assert row["n"] == 1 and 0.0 <= out["success_rate"] <= 1.0
+    (ep,) = json.loads((Path(out["report_dir"]) / "episodes.json").read_text())
+    assert ep["init_state"] == 0
+    if termination == "fixed" or not ep["success"]:  # no stop signal: the episode runs to the horizon
+        assert ep["steps"] == 280
+    assert Manifest(exp).latest("evaluate", task="tiny", termination=termination).files("video")
+
+
+def test_policy_rollouts_keep_every_episode_with_mu_and_beta(experiment):
+    exp, _, _ = experiment
+    out = collect(cfg("collect", exp, f"data_dir={exp / 'data'}", "source=policy", "episodes_per_task=1",
+                      "workers=1", "progress=false", "lerobot_export=false"))
+    assert out["collection"]["kept"] == 1
+    rec = Manifest(exp).latest("collect", task="tiny", source="policy")
+    (path,) = Manifest(exp).resolve(rec, kind="episodes")
+    ep = read_episode(path)
+    assert ep.meta.source == "policy" and set(ep.step_extras) == {"mu", "beta"}
+    assert ep.step_extras["mu"].shape == (ep.length, 7)
+
+
+def test_evaluate_without_a_policy_names_the_missing_stage(tmp_path):
+    with pytest.raises(ArtefactError, match="no 'train_policy' artefact"):
+        evaluate(cfg("evaluate", tmp_path, "init_states=1", "progress=false"))
+    with pytest.raises(ConfigError, match="termination must be one of oracle, fixed"):
+        evaluate(cfg("evaluate", tmp_path, "termination=never"))

@@ -1,0 +1,27 @@
+import math
+
+import pytest
+
+from worldenv_core.parallel import run_jobs
+
+
+def square(x):
+    return x * x
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_local_launcher_returns_every_result(workers):
+    assert sorted(run_jobs(square, range(6), workers=workers, progress=False)) == [x * x for x in range(6)]
+
+
+def test_ray_launcher_on_a_local_instance():
+    pytest.importorskip("ray")
+    # Ray workers import the function by module: use one they can import.
+    assert sorted(run_jobs(math.factorial, range(5), workers=2, launcher="ray", progress=False)) == [1, 1, 2, 6, 24]
+
+
+def test_bad_launcher_and_workers_are_rejected():
+    with pytest.raises(ValueError, match="valid launchers: local, ray"):
+        list(run_jobs(square, [1], launcher="slurm"))
+    with pytest.raises(ValueError, match="workers must be >= 1"):
+        list(run_jobs(square, [1], workers=0))

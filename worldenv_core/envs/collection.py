@@ -1,0 +1,203 @@
+"""Collection jobs that worker processes run: one job = one episode file (or one task's expert
+evaluation). Jobs are plain picklable dataclasses so the local pool and Ray run the same code.
+
+Resume: an episode's file name and every seed it uses are functions of the job alone, and files
+appear only when complete (written to a temporary name, then renamed), so a restarted run skips
+the files that exist and reproduces the rest exactly.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from worldenv_core.envs.recording import attempt_seed, cached_env, expert_attempt, to_episode
+
+
+@dataclass(frozen=True)
+class ExpertEpisodeJob:
+    suite: str
+    task_id: int
+    index: int  # demo number within the task
+    path: str
+    seed: int
+    init_mode: str  # "sampled" | "benchmark"
+    cameras: tuple[str, ...]
+    image_size: int
+    max_steps: int
+    max_attempts: int
+    fps: float
+
+
+def collect_expert_episode(job: ExpertEpisodeJob) -> dict:
+    """Try the expert until it succeeds (at most `max_attempts`), render and write the kept episode."""
+    from worldenv_core.data.mcap_io import write_episode
+
+    out = {"suite": job.suite, "task_id": job.task_id, "index": job.index, "path": job.path}
+    if Path(job.path).exists():
+        return {**out, "status": "exists"}
+    t0 = time.perf_counter()
+    env = cached_env(job.suite, job.task_id, job.cameras, job.image_size, render=True)
+    build_s = time.perf_counter() - t0
+    errors, steps_tried = [], 0
+    for attempt in range(job.max_attempts):
+        seed = attempt_seed(job.seed, job.suite, job.task_id, job.index, attempt)
+        init = None if job.init_mode == "sampled" else job.index % 50
+        traj = expert_attempt(env, init, seed, job.max_steps)
+        steps_tried += traj.length
+        if traj.error:
+            errors.append(traj.error)
+        if not traj.success:
+            continue
+        t_render = time.perf_counter()
+        episode = to_episode(
+            env, traj, init_state_index=-1 if init is None else init, seed=seed, source="expert",
+            attempts=attempt + 1, fps=job.fps,
+        )
+        render_s = time.perf_counter() - t_render
+        write_episode(job.path, episode)
+        return {**out, "status": "kept", "attempts": attempt + 1, "frames": traj.length + 1,
+                "steps_simulated": steps_tried, "render_s": render_s, "build_s": build_s,
+                "seconds": time.perf_counter() - t0, "errors": errors}
+    return {**out, "status": "failed", "attempts": job.max_attempts, "steps_simulated": steps_tried,
+            "build_s": build_s, "seconds": time.perf_counter() - t0, "errors": errors}
+
+
+@dataclass(frozen=True)
+class ExpertEvalJob:
+    suite: str
+    task_id: int
+    init_ids: tuple[int, ...]
+    seed: int
+    max_steps: int
+
+
+def evaluate_expert_task(job: ExpertEvalJob) -> list[dict]:
+    """Expert success on the benchmark's fixed init states of one task (physics only)."""
+    env = cached_env(job.suite, job.task_id, (), 0, render=False)
+    rows = []
+    for i in job.init_ids:
+        t0 = time.perf_counter()
+        # The seeds the expert's development measurements used, so the table reproduces them.
+        rng = np.random.default_rng([job.seed, job.task_id, i])
+        traj = expert_attempt(env, i, job.seed * 100003 + job.task_id * 1009 + i, job.max_steps, rng=rng)
+        rows.append({"suite": job.suite, "task_id": job.task_id, "task": env.task.name, "init_state": i,
+                     "success": traj.success, "steps": traj.length, "error": traj.error,
+                     "seconds": time.perf_counter() - t0})
+    return rows
+
+
+def summarise_expert_eval(rows: list[dict]) -> list[dict]:
+    """Per-task success rate and mean steps of successful episodes."""
+    table = []
+    for tid in sorted({r["task_id"] for r in rows}):
+        rs = [r for r in rows if r["task_id"] == tid]
+        ok = [r for r in rs if r["success"]]
+        table.append({"task_id": tid, "task": rs[0]["task"], "n": len(rs), "successes": len(ok),
+                      "success_rate": len(ok) / len(rs),
+                      "mean_steps": float(np.mean([r["steps"] for r in ok])) if ok else float("nan")})
+    return table
+
+
+# -- policy rollouts (collect source=policy, evaluate) ----------------------------------------------
+_RUNNERS: dict = {}
+
+
+def cached_runner(policy_path: str, sample: bool, noise_scale: float, expect: dict):
+    """One loaded policy per worker process (loading costs more than an episode's first chunk)."""
+    from worldenv_core.models.policy import PolicyRunner, load_policy
+
+    key = (policy_path, sample, noise_scale)
+    if key not in _RUNNERS:
+        model, _ = load_policy(policy_path, expect=expect)
+        _RUNNERS.clear()
+        _RUNNERS[key] = PolicyRunner(model, sample=sample, noise_scale=noise_scale)
+    return _RUNNERS[key]
+
+
+def policy_contract(cameras, image_size: int, chunk: int) -> dict:
+    return {"cameras": list(cameras), "image_size": int(image_size), "chunk": int(chunk), "action_dim": 7}
+
+
+@dataclass(frozen=True)
+class PolicyEpisodeJob:
+    """One Laplace-perturbed policy rollout, kept whatever its outcome."""
+
+    policy_path: str
+    suite: str
+    task_id: int
+    index: int
+    path: str
+    seed: int
+    init_mode: str
+    cameras: tuple[str, ...]
+    image_size: int
+    chunk: int
+    max_steps: int
+    noise_scale: float
+    stop_on_success: bool
+    fps: float
+
+
+def collect_policy_episode(job: PolicyEpisodeJob) -> dict:
+    from worldenv_core.data.mcap_io import write_episode
+    from worldenv_core.envs.recording import policy_episode
+
+    out = {"suite": job.suite, "task_id": job.task_id, "index": job.index, "path": job.path}
+    if Path(job.path).exists():
+        return {**out, "status": "exists"}
+    t0 = time.perf_counter()
+    env = cached_env(job.suite, job.task_id, job.cameras, job.image_size, render=True)
+    runner = cached_runner(job.policy_path, True, job.noise_scale, policy_contract(job.cameras, job.image_size, job.chunk))
+    seed = attempt_seed(job.seed, job.suite, job.task_id, job.index, 0)
+    runner.generator.manual_seed(seed)  # the Laplace noise of this episode depends on the job alone
+    init = None if job.init_mode == "sampled" else job.index % 50
+    traj = policy_episode(env, runner, init, seed, job.max_steps, stop_on_success=job.stop_on_success)
+    if not traj.frames or traj.length == 0:
+        return {**out, "status": "failed", "errors": [traj.error], "seconds": time.perf_counter() - t0}
+    episode = to_episode(env, traj, init_state_index=-1 if init is None else init, seed=seed, source="policy",
+                         fps=job.fps, extra={"policy": job.policy_path, "noise_scale": str(job.noise_scale),
+                                             **({"error": traj.error} if traj.error else {})})
+    write_episode(job.path, episode)
+    return {**out, "status": "kept", "success": traj.success or bool(episode.success.any()),
+            "frames": traj.length + 1, "attempts": 1, "seconds": time.perf_counter() - t0,
+            "errors": [traj.error] if traj.error else []}
+
+
+@dataclass(frozen=True)
+class PolicyEvalJob:
+    policy_path: str
+    suite: str
+    task_id: int
+    init_ids: tuple[int, ...]
+    cameras: tuple[str, ...]
+    image_size: int
+    chunk: int
+    max_steps: int
+    termination: str  # "oracle": stop at the first success; "fixed": run max_steps, judge the last frame
+    video_ids: tuple[int, ...] = ()
+
+
+def evaluate_policy_task(job: PolicyEvalJob) -> dict:
+    """Success of the policy's mean actions from benchmark init states; videos for `video_ids`."""
+    from worldenv_core.envs.recording import policy_episode
+
+    env = cached_env(job.suite, job.task_id, job.cameras, job.image_size, render=True)
+    runner = cached_runner(job.policy_path, False, 1.0, policy_contract(job.cameras, job.image_size, job.chunk))
+    rows, videos = [], {}
+    for i in job.init_ids:
+        t0 = time.perf_counter()
+        traj = policy_episode(env, runner, i, 0, job.max_steps, stop_on_success=job.termination == "oracle")
+        flags = [f.success for f in traj.frames]
+        rows.append({"suite": job.suite, "task_id": job.task_id, "task": env.task.name, "init_state": i,
+                     "success": bool(traj.error is None and flags and flags[-1]),
+                     "ever_succeeded": bool(any(flags)), "steps": traj.length,
+                     "first_success_step": flags.index(True) if any(flags) else None,
+                     "error": traj.error, "seconds": time.perf_counter() - t0})
+        if i in job.video_ids and traj.frames:
+            states = np.stack([f.sim_state for f in traj.frames])
+            videos[i] = env.render_states(states, [job.cameras[0]])[job.cameras[0]]
+    return {"rows": rows, "videos": videos}

@@ -1,0 +1,192 @@
+"""One factory for every LIBERO suite: the real benchmark env, reused across episodes.
+
+Rendering is the dominant cost of the simulator (STACK.md: ~13 ms per physics step against
+~100 ms per 128 px camera render), so the env never renders on `step`; callers ask for images
+with `render()` exactly where they keep them (every frame of a kept demo, every chunk boundary
+of a policy). `render=False` builds the env without an offscreen renderer at all.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import logging
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from worldenv_core.envs.tasks import TaskSpec, get_task, init_states
+from worldenv_core.robot import ACTION_DIM, gripper_opening
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+log = logging.getLogger(__name__)
+
+
+
+class SimulationError(RuntimeError):
+    """The physics became unstable (NaN state, MuJoCo warning turned error) during an episode."""
+
+
+@dataclass
+class Frame:
+    """What the env reports about one instant. `images` is empty unless rendered."""
+
+    proprio: np.ndarray  # (7,) eef pos, eef axis-angle, gripper opening in [0, 1]
+    joint_pos: np.ndarray  # (7,)
+    sim_state: np.ndarray  # flattened MuJoCo state
+    success: bool
+    images: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+def quat_xyzw_to_axis_angle(quat: np.ndarray) -> np.ndarray:
+    """robosuite's convention: xyzw quaternion -> rotation vector (angle in [0, pi])."""
+    q = np.asarray(quat, dtype=np.float64)
+    q = q / np.linalg.norm(q)
+    if q[3] < 0:  # pick the hemisphere with a non-negative scalar part: angle <= pi
+        q = -q
+    sin_half = np.linalg.norm(q[:3])
+    if sin_half < 1e-12:
+        return np.zeros(3)
+    angle = 2.0 * np.arctan2(sin_half, q[3])
+    return q[:3] / sin_half * angle
+
+
+def proprio_from_obs(obs: dict) -> np.ndarray:
+    """The paper's s_t = (eef position 3, eef axis-angle 3, gripper opening 1)."""
+    qpos = obs["robot0_gripper_qpos"]
+    opening = gripper_opening(qpos[0], qpos[1])
+    return np.concatenate(
+        [obs["robot0_eef_pos"], quat_xyzw_to_axis_angle(obs["robot0_eef_quat"]), [opening]]
+    ).astype(np.float32)
+
+
+class LiberoEnv:
+    """A LIBERO task in robosuite, built once and reset many times.
+
+    Args:
+        suite, task_id: which benchmark task.
+        cameras: cameras `render()` returns by default (e.g. agentview, robot0_eye_in_hand).
+        image_size: square render resolution in pixels.
+        render: False builds a physics-only env (no offscreen renderer), for work that keeps no images.
+    """
+
+    def __init__(self, suite: str, task_id: int, cameras=("agentview",), image_size: int = 128, render: bool = True):
+        self.task: TaskSpec = get_task(suite, task_id)
+        self.cameras = list(cameras)
+        self.image_size = int(image_size)
+        self.can_render = bool(render)
+        from libero.libero.envs import OffScreenRenderEnv
+
+        with contextlib.redirect_stdout(io.StringIO()):
+            self._env = OffScreenRenderEnv(
+                bddl_file_name=self.task.bddl_path,
+                has_offscreen_renderer=self.can_render,
+                use_camera_obs=False,  # we render by hand, only the frames we keep
+                camera_names=self.cameras or ["agentview"],
+                camera_heights=self.image_size,
+                camera_widths=self.image_size,
+                ignore_done=True,  # the episode length is ours to decide, not robosuite's horizon
+            )
+        self._obs: dict | None = None
+
+    # -- properties -------------------------------------------------------------------------
+    @property
+    def raw(self):
+        """The libero ControlEnv (privileged access for scripted experts)."""
+        return self._env
+
+    @property
+    def sim(self):
+        return self._env.sim
+
+    @property
+    def instruction(self) -> str:
+        return self.task.instruction
+
+    @property
+    def max_steps(self) -> int:
+        return self.task.max_steps
+
+    # -- episode control ----------------------------------------------------------------------
+    def reset(self, init_state: int | np.ndarray | None = None, seed: int | None = None) -> Frame:
+        """Reset to a benchmark init state (an index or a flat MuJoCo state), or, with
+        `init_state=None`, to a fresh random placement drawn from `seed`.
+
+        The seed matters in both cases: LIBERO's reset re-samples the *fixtures'* placement
+        (cabinets, stoves: model.body_pos) from numpy's global RNG, and an init state restores
+        only qpos/qvel, so an unseeded reset is not reproducible. `seed=None` means seed 0."""
+        self._env.seed(int(seed) if seed is not None else 0)
+        self._obs = self._env.reset()
+        if init_state is not None:
+            if isinstance(init_state, (int, np.integer)):
+                states = init_states(self.task.suite, self.task.task_id)
+                if not 0 <= int(init_state) < len(states):
+                    raise IndexError(f"init state {init_state} out of range 0..{len(states) - 1} for {self.task.name}")
+                init_state = states[int(init_state)]
+            self._obs = self._env.set_init_state(np.asarray(init_state))
+        return self.observe()
+
+    def step(self, action: np.ndarray) -> Frame:
+        action = np.asarray(action, dtype=np.float64)
+        if action.shape != (ACTION_DIM,):
+            raise ValueError(f"action must have shape ({ACTION_DIM},), got {action.shape}")
+        if not np.all(np.isfinite(action)):
+            raise ValueError(f"action has non-finite entries: {action}")
+        self._obs, _, _, _ = self._env.step(np.clip(action, -1.0, 1.0))
+        frame = self.observe()
+        if not np.all(np.isfinite(frame.sim_state)):
+            raise SimulationError(f"non-finite MuJoCo state in {self.task.name}")
+        return frame
+
+    def observe(self, render: bool = False) -> Frame:
+        obs = self._obs
+        return Frame(
+            proprio=proprio_from_obs(obs),
+            joint_pos=np.asarray(obs["robot0_joint_pos"], dtype=np.float64).copy(),
+            sim_state=self._env.get_sim_state().astype(np.float64).copy(),
+            success=bool(self._env.check_success()),
+            images=self.render() if render else {},
+        )
+
+    def check_success(self) -> bool:
+        return bool(self._env.check_success())
+
+    # -- rendering and replay -------------------------------------------------------------------
+    def render(self, cameras=None) -> dict[str, np.ndarray]:
+        """Upright uint8 images of the current state (robosuite renders upside down)."""
+        if not self.can_render:
+            raise RuntimeError("this env was built with render=False (physics only)")
+        # mj_step leaves body poses one substep behind the state it reports; forward() syncs
+        # them so a live render equals a render replayed from the recorded state, bit for bit.
+        self.sim.forward()
+        out = {}
+        for cam in cameras or self.cameras:
+            img = self.sim.render(width=self.image_size, height=self.image_size, camera_name=cam)
+            out[cam] = np.ascontiguousarray(img[::-1])
+        return out
+
+    def set_sim_state(self, flat_state: np.ndarray) -> None:
+        """Put the simulator in a recorded state (replaying a physics-only episode to render it)."""
+        self._env.set_state(np.asarray(flat_state, dtype=np.float64))
+        self.sim.forward()
+
+    def render_states(self, states: np.ndarray, cameras=None) -> dict[str, np.ndarray]:
+        """Render a recorded sequence of MuJoCo states: camera -> (T, H, W, 3) uint8."""
+        cams = list(cameras or self.cameras)
+        frames: dict[str, list] = {c: [] for c in cams}
+        for s in states:
+            self.set_sim_state(s)
+            for cam, img in self.render(cams).items():
+                frames[cam].append(img)
+        return {c: np.stack(v) for c, v in frames.items()}
+
+    def close(self) -> None:
+        with contextlib.suppress(Exception):
+            self._env.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

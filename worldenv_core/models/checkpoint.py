@@ -1,0 +1,70 @@
+"""Self-describing checkpoints (robomimic/lerobot style): a folder with
+
+  model.safetensors   the weights (normalisation stats included, as buffers)
+  config.json         {"model": <_target_ config that rebuilds the module>, "meta": {...}, "format": 1}
+
+`load_model(path)` needs that folder alone: no Hydra run, no dataset, no network. Folders are
+written under a temporary name and renamed when complete.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import torch
+from hydra.utils import instantiate
+from safetensors.torch import load_file, save_file
+
+FORMAT = 1
+WEIGHTS, CONFIG = "model.safetensors", "config.json"
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that is missing, incomplete, or made for another task contract."""
+
+
+def save_model(path: str | Path, model: torch.nn.Module, model_config: dict, meta: dict | None = None) -> Path:
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    state = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
+    save_file(state, str(tmp / WEIGHTS))
+    (tmp / CONFIG).write_text(json.dumps({"format": FORMAT, "model": model_config, "meta": meta or {}}, indent=2))
+    if path.exists():
+        shutil.rmtree(path)
+    tmp.rename(path)
+    return path
+
+
+def read_config(path: str | Path) -> dict:
+    path = Path(path)
+    if path.is_file() and path.name in (WEIGHTS, CONFIG):
+        path = path.parent
+    if not (path / CONFIG).exists() or not (path / WEIGHTS).exists():
+        raise CheckpointError(f"{path} is not a checkpoint folder (needs {CONFIG} and {WEIGHTS})")
+    cfg = json.loads((path / CONFIG).read_text())
+    if cfg.get("format") != FORMAT:
+        raise CheckpointError(f"{path}: checkpoint format {cfg.get('format')!r}, this code reads {FORMAT}")
+    return cfg
+
+
+def load_model(path: str | Path, expect: dict | None = None, map_location: str = "cpu") -> tuple[torch.nn.Module, dict]:
+    """Rebuild the module from its config and load its weights. `expect` names meta values the
+    caller's task contract requires (e.g. {"action_dim": 7, "chunk": 8}); a mismatch is an error
+    naming both values, not a silent reshape."""
+    path = Path(path)
+    if path.is_file():
+        path = path.parent
+    cfg = read_config(path)
+    for key, want in (expect or {}).items():
+        have = cfg["meta"].get(key)
+        if have != want:
+            raise CheckpointError(f"checkpoint {path} was made for {key}={have!r}, but this run needs {key}={want!r}")
+    model = instantiate(cfg["model"], _convert_="all")
+    missing, unexpected = model.load_state_dict(load_file(str(path / WEIGHTS), device=map_location), strict=False)
+    if missing or unexpected:
+        raise CheckpointError(f"{path}: weights do not fit the model (missing {missing[:5]}, unexpected {unexpected[:5]})")
+    return model, cfg

@@ -1,0 +1,103 @@
+"""Run independent jobs (episodes) in parallel: in-process, on local worker processes, or on Ray.
+
+Every launcher takes the same top-level function and list of picklable jobs and yields results
+as they complete, so stages write one loop with one progress bar whatever runs the work.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import os
+from collections.abc import Callable, Iterable, Iterator
+from typing import Any
+
+from tqdm import tqdm
+
+log = logging.getLogger(__name__)
+LAUNCHERS = ("local", "ray")
+
+
+def default_workers() -> int:
+    return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+
+
+def _init_worker() -> None:
+    # Episodes are the unit of parallelism; nested BLAS/torch threads would only fight over cores.
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    os.environ.setdefault("MKL_NUM_THREADS", "1")
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+    except ImportError:
+        pass
+
+
+def _validate(launcher: str, workers: int | None) -> int:
+    if launcher not in LAUNCHERS:
+        raise ValueError(f"unknown launcher {launcher!r}; valid launchers: {', '.join(LAUNCHERS)}")
+    if workers is None:
+        return default_workers()
+    if int(workers) < 1:
+        raise ValueError(f"workers must be >= 1 (or null for all cores), got {workers}")
+    return int(workers)
+
+
+def run_jobs(
+    fn: Callable[[Any], Any],
+    jobs: Iterable[Any],
+    workers: int | None = None,
+    launcher: str = "local",
+    desc: str = "jobs",
+    ray_address: str | None = None,
+    progress: bool = True,
+    unit: str = "ep",
+) -> Iterator[Any]:
+    """Yield `fn(job)` for every job, in completion order, with a progress bar."""
+    jobs = list(jobs)
+    workers = _validate(launcher, workers)
+    bar = tqdm(total=len(jobs), desc=desc, unit=unit, disable=not progress, dynamic_ncols=True)
+    try:
+        if launcher == "ray":
+            results = _ray_results(fn, jobs, workers, ray_address)
+        elif workers == 1 or len(jobs) <= 1:
+            results = (fn(j) for j in jobs)
+        else:
+            results = _pool_results(fn, jobs, workers)
+        for r in results:
+            bar.update(1)
+            yield r
+    finally:
+        bar.close()
+
+
+def _pool_results(fn, jobs, workers) -> Iterator[Any]:
+    # spawn, not fork: MuJoCo/EGL contexts and torch threads do not survive a fork safely.
+    ctx = mp.get_context("spawn")
+    with ctx.Pool(processes=min(workers, len(jobs)), initializer=_init_worker, maxtasksperchild=None) as pool:
+        yield from pool.imap_unordered(fn, jobs, chunksize=1)
+
+
+def _ray_results(fn, jobs, workers, address) -> Iterator[Any]:
+    import ray
+
+    started_here = not ray.is_initialized()
+    if started_here:
+        # address=None starts a local Ray instance; "auto" or "ray://host:port" joins a cluster.
+        ray.init(address=address, num_cpus=workers if address is None else None,
+                 include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
+    try:
+        remote = ray.remote(num_cpus=1)(_ray_call)
+        pending = [remote.remote(fn, j) for j in jobs]
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            yield ray.get(done[0])
+    finally:
+        if started_here:
+            ray.shutdown()
+
+
+def _ray_call(fn, job):
+    _init_worker()
+    return fn(job)

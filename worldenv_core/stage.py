@@ -1,0 +1,83 @@
+"""What every stage does the same way: validate the task contract, resolve the config, seed,
+find the experiment's manifest. One place, so stages stay thin."""
+
+from __future__ import annotations
+
+import logging
+import os
+import random
+from pathlib import Path
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+from worldenv_core.envs.tasks import check_suite, resolve_task_ids
+from worldenv_core.manifest import Manifest
+
+CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
+log = logging.getLogger("worldenv")
+
+
+class ConfigError(ValueError):
+    """An invalid or incomplete stage configuration."""
+
+
+def available_tasks() -> list[str]:
+    return sorted(p.stem for p in (CONF_DIR / "task").glob("*.yaml"))
+
+
+def require_task(cfg: DictConfig) -> DictConfig:
+    """The task group is selected on the command line (`+task=libero_goal`); say so when it is not."""
+    task = cfg.get("task")
+    if task is None:
+        raise ConfigError(
+            "no task selected: add +task=<name> to the command, e.g. `python -m stages.collect +task=libero_goal`.\n"
+            f"Valid tasks: {', '.join(available_tasks())}"
+        )
+    check_suite(task.suite)
+    resolve_task_ids(task.suite, task.task_ids)
+    return task
+
+
+def positive_int(cfg: DictConfig, key: str, allow_zero: bool = False) -> int:
+    value = OmegaConf.select(cfg, key)
+    ok = isinstance(value, int) and not isinstance(value, bool) and (value >= 0 if allow_zero else value > 0)
+    if not ok:
+        raise ConfigError(f"{key} must be an integer {'>= 0' if allow_zero else '> 0'}, got {value!r}")
+    return value
+
+
+def resolved(cfg: DictConfig) -> dict:
+    """The config as plain data, without Hydra's own node (which holds machine paths)."""
+    return OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    try:
+        import torch
+
+        torch.manual_seed(seed)
+    except ImportError:
+        pass
+
+
+def experiment(cfg: DictConfig) -> Manifest:
+    """The experiment directory (created, checked writable) and its manifest."""
+    root = Path(cfg.experiment_dir)
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        probe = root / ".write_test"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as e:
+        raise ConfigError(f"experiment_dir {root} is not writable: {e}") from e
+    return Manifest(root)
+
+
+def setup_logging() -> None:
+    logging.basicConfig(level=os.environ.get("WORLDENV_LOG", "INFO"),
+                        format="[%(asctime)s %(name)s %(levelname)s] %(message)s", datefmt="%H:%M:%S")
+    for noisy in ("robosuite", "OpenGL", "numba", "matplotlib"):
+        logging.getLogger(noisy).setLevel(logging.ERROR)

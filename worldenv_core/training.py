@@ -1,0 +1,128 @@
+"""What every training stage shares: device choice, endless seeded batches, resumable
+checkpoints (`<work>/checkpoints/<step>/` + `last`), and loss curves as a plot."""
+
+from __future__ import annotations
+
+import json
+import logging
+import random
+import shutil
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+from worldenv_core.models.checkpoint import save_model
+
+log = logging.getLogger(__name__)
+TRAIN_STATE = "training_state.pt"
+
+
+def pick_device(name: str = "auto") -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def batches(dataset: Dataset, batch_size: int, seed: int, start_step: int = 0, num_workers: int = 0) -> Iterator[dict]:
+    """Endless shuffled batches. Epoch e is shuffled with seed + e, so a resumed run at step s
+    sees the same batches an uninterrupted run would (up to the position inside the epoch)."""
+    per_epoch = max(1, len(dataset) // batch_size)
+    epoch = start_step // per_epoch
+    while True:
+        g = torch.Generator().manual_seed(seed + epoch)
+        loader = DataLoader(dataset, batch_size=batch_size, shuffle=True, drop_last=len(dataset) >= batch_size,
+                            generator=g, num_workers=num_workers)
+        yield from loader
+        epoch += 1
+
+
+class Checkpoints:
+    """`<work>/checkpoints/<step:07d>/` (self-describing model + training state), `last` -> newest."""
+
+    def __init__(self, work_dir: str | Path, keep: int = 2):
+        self.dir = Path(work_dir) / "checkpoints"
+        self.keep = keep
+
+    @property
+    def last(self) -> Path | None:
+        link = self.dir / "last"
+        return link.resolve() if link.exists() else None
+
+    def save(self, step: int, model, model_config: dict, meta: dict, optimizers: dict, history: list[dict]) -> Path:
+        path = save_model(self.dir / f"{step:07d}", model, model_config, {**meta, "step": step})
+        state = {
+            "step": step,
+            "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
+            "rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()},
+            "history": history,
+        }
+        torch.save(state, path / (TRAIN_STATE + ".tmp"))
+        (path / (TRAIN_STATE + ".tmp")).rename(path / TRAIN_STATE)
+        tmp_link = self.dir / "last.tmp"
+        tmp_link.unlink(missing_ok=True)
+        tmp_link.symlink_to(path.name)
+        tmp_link.replace(self.dir / "last")  # atomic: `last` always names a complete checkpoint
+        for old in sorted(p for p in self.dir.iterdir() if p.name.isdigit())[:-self.keep]:
+            shutil.rmtree(old)
+        return path
+
+    def restore(self, model, optimizers: dict) -> tuple[int, list[dict]]:
+        """Load the newest checkpoint into `model` and `optimizers`; (0, []) when there is none."""
+        last = self.last
+        if last is None or not (last / TRAIN_STATE).exists():
+            return 0, []
+        from safetensors.torch import load_file
+
+        model.load_state_dict(load_file(str(last / "model.safetensors")))
+        state = torch.load(last / TRAIN_STATE, weights_only=False)
+        for k, o in optimizers.items():
+            o.load_state_dict(state["optimizers"][k])
+        torch.set_rng_state(state["rng"]["torch"])
+        np.random.set_state(state["rng"]["numpy"])
+        random.setstate(state["rng"]["python"])
+        log.info("resumed from %s (step %d)", last, state["step"])
+        return int(state["step"]), list(state["history"])
+
+
+def plot_history(history: list[dict], path: str | Path, title: str = "") -> Path:
+    """One panel per logged loss/metric against the step."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    keys = [k for k in history[0] if k != "step"] if history else []
+    fig, axes = plt.subplots(1, max(1, len(keys)), figsize=(4 * max(1, len(keys)), 3), squeeze=False)
+    for ax, k in zip(axes[0], keys):
+        pts = [(h["step"], h[k]) for h in history if k in h]
+        ax.plot(*zip(*pts))
+        ax.set_title(k)
+        ax.set_xlabel("step")
+    fig.suptitle(title)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path.with_suffix(".tmp.png"))
+    plt.close(fig)
+    path.with_suffix(".tmp.png").replace(path)
+    (path.with_suffix(".json")).write_text(json.dumps(history))
+    return path
+
+
+def random_shift(images: torch.Tensor, pad: int, generator: torch.Generator | None = None) -> torch.Tensor:
+    """Shift each image of a (B, C, H, W) batch by up to `pad` pixels (replicate-padded), the
+    DrQ augmentation that makes low-data image policies far less brittle. One gather, no loop."""
+    if pad <= 0:
+        return images
+    b, c, h, w = images.shape
+    padded = torch.nn.functional.pad(images.float(), (pad, pad, pad, pad), mode="replicate")
+    dx = torch.randint(0, 2 * pad + 1, (b,), generator=generator)
+    dy = torch.randint(0, 2 * pad + 1, (b,), generator=generator)
+    rows = (dy[:, None] + torch.arange(h)[None]).to(images.device)  # (B, H)
+    cols = (dx[:, None] + torch.arange(w)[None]).to(images.device)  # (B, W)
+    idx_r = rows[:, None, :, None].expand(b, c, h, padded.shape[-1])
+    out = padded.gather(2, idx_r)
+    idx_c = cols[:, None, None, :].expand(b, c, h, w)
+    return out.gather(3, idx_c).to(images.dtype)
