@@ -40,7 +40,7 @@ test-fast: setup
 N_INIT ?= 50
 expert-table: setup
 	$(PY) -m stages.collect +task=$(TASK) scale=$(SCALE) episodes_per_task=0 \
-	  expert_eval.init_states=$(N_INIT) experiment_dir=outputs/expert-table
+	  expert_eval.init_states=$(N_INIT) experiment_dir=outputs/expert-table/$(TASK)
 
 # The pipeline so far, in one experiment directory; each stage finds its inputs through
 # $(EXP)/manifest.jsonl and skips work already done (re-running resumes).

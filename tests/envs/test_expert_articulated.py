@@ -4,41 +4,28 @@ libero_goal task 7 "turn on the stove": ``turn_on`` grasps the flat_stove knob a
 libero_goal task 0 "open the middle drawer": ``open_region`` side-grasps the handle and pulls.
 Each must succeed (LIBERO's own ``check_success``) on at least 2 of 3 fixed init states.
 """
-import os
-
 import numpy as np
 import pytest
+
+from worldenv_core.envs.libero_env import LiberoEnv
 
 pytestmark = pytest.mark.sim
 
 
-def _make_env(suite: str, task_id: int):
-    from libero.libero import benchmark, get_libero_path
-    from libero.libero.envs import OffScreenRenderEnv
-
-    s = benchmark.get_benchmark_dict()[suite]()
-    task = s.get_task(task_id)
-    bddl = os.path.join(get_libero_path("bddl_files"), task.problem_folder, task.bddl_file)
-    env = OffScreenRenderEnv(bddl_file_name=bddl, has_offscreen_renderer=False, use_camera_obs=False)
-    return env, s.get_task_init_states(task_id)
-
-
-def _run(env, init, make_gen, limit: int) -> tuple[bool, int]:
+def _run(env: LiberoEnv, init: int, make_gen, limit: int) -> tuple[bool, int]:
     from worldenv_core.envs.expert.context import ExpertContext
 
-    env.reset()
-    env.set_init_state(init)
-    ctx = ExpertContext(env, np.random.default_rng(0))
-    gen = make_gen(ctx)
+    frame = env.reset(init_state=init, seed=0)
+    ctx = ExpertContext(env.raw, np.random.default_rng(0))
     steps = 0
-    for action in gen:
-        assert action.shape == (7,) and action.dtype == np.float64
-        assert np.all(np.abs(action) <= 1.0)
-        env.step(action)
+    for action in make_gen(ctx):
+        action = np.asarray(action, dtype=np.float64)
+        assert action.shape == (7,) and np.all(np.abs(action) <= 1.0)
+        frame = env.step(action)
         steps += 1
-        if env.check_success() or steps >= limit:
+        if frame.success or steps >= limit:
             break
-    return bool(env.check_success()), steps
+    return frame.success, steps
 
 
 @pytest.mark.parametrize(
@@ -49,14 +36,14 @@ def _run(env, init, make_gen, limit: int) -> tuple[bool, int]:
 def test_articulated_primitive_solves_goal_task(task_id, which):
     from worldenv_core.envs.expert import articulated as A
 
-    env, inits = _make_env("libero_goal", task_id)
+    env = LiberoEnv("libero_goal", task_id, cameras=(), render=False)
     try:
-        goal = env.env.parsed_problem["goal_state"]
+        goal = env.raw.env.parsed_problem["goal_state"]
         assert len(goal) == 1
         pred, target = goal[0][0].lower(), goal[0][1]
         assert {"turnon": "turn_on", "open": "open_region"}[pred] == which
         fn = getattr(A, which)
-        results = [_run(env, inits[i], lambda ctx: fn(ctx, target), limit=300) for i in range(3)]
+        results = [_run(env, i, lambda ctx: fn(ctx, target), limit=300) for i in range(3)]
     finally:
         env.close()
     wins = sum(ok for ok, _ in results)
@@ -68,11 +55,10 @@ def test_articulated_rules_without_sim_state_changes():
     from worldenv_core.envs.expert import articulated as A
     from worldenv_core.envs.expert.context import ExpertContext
 
-    env, inits = _make_env("libero_goal", 3)  # open the top drawer and put the bowl inside
+    env = LiberoEnv("libero_goal", 3, cameras=(), render=False)  # open the top drawer, bowl inside
     try:
-        env.reset()
-        env.set_init_state(inits[0])
-        ctx = ExpertContext(env)
+        env.reset(init_state=0, seed=0)
+        ctx = ExpertContext(env.raw)
         assert A.articulated_container(ctx, "wooden_cabinet_1_top_region") == "wooden_cabinet_1_top_region"
         assert A.articulated_container(ctx, "wooden_cabinet_1_top_side", "on") is None
         assert A.articulated_container(ctx, "main_table_stove_front_region") is None

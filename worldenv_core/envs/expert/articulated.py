@@ -751,6 +751,8 @@ def is_table_region(ctx: ExpertContext, name: str) -> bool:
     if name not in env.object_sites_dict:
         return False
     parent = env.object_sites_dict[name].parent_name
+    if parent is None:  # LIBERO's table regions are TargetZones with no parent object
+        return True
     try:
         return "table" in ctx.category(parent) or "table" in parent
     except Exception:  # noqa: BLE001

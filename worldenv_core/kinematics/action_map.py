@@ -1,0 +1,60 @@
+"""Action maps (EVAC, World-Env sec. 4.1): the end-effector state s_{t+1} drawn into the camera
+image on a black background, as pixel conditioning for the world simulator.
+
+A filled white disc at the projected gripper position whose radius grows with the gripper
+opening, and three line segments for the gripper's x (red), y (green) and z (blue) axes.
+Everything is drawn at once for a batch of states with distance fields over the pixel grid
+(soft, anti-aliased edges), no Python loop over pixels or states.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from worldenv_core.kinematics.camera import PinholeCamera
+from worldenv_core.kinematics.next_state import axis_angle_to_matrix
+
+AXIS_LENGTH_M = 0.06
+AXIS_COLOURS = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+
+
+def _coverage(dist: torch.Tensor, radius: torch.Tensor | float) -> torch.Tensor:
+    """Pixel coverage of a shape whose edge is at `radius` from its skeleton (1-pixel ramp)."""
+    return (radius + 0.5 - dist).clamp(0.0, 1.0)
+
+
+def _segment_distance(grid: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """grid (H, W, 2), a/b (..., 2) -> distance from each pixel to each segment (..., H, W)."""
+    a, b = a[..., None, None, :], b[..., None, None, :]
+    ab = b - a
+    t = (((grid - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp(min=1e-9)).clamp(0.0, 1.0)
+    return (grid - (a + t[..., None] * ab)).norm(dim=-1)
+
+
+def draw_action_maps(states: torch.Tensor, camera: PinholeCamera, radius_px: tuple[float, float] | None = None,
+                     line_px: float | None = None) -> torch.Tensor:
+    """states (..., 7) = (eef pos, eef axis-angle, gripper opening in [0, 1]) ->
+    maps (..., 3, H, W) in [0, 1]. Radii default to a fraction of the image size so that maps
+    look alike at every resolution: a disc of 2 %..5 % of the width, lines of 0.8 %."""
+    size = camera.image_size
+    r_closed, r_open = radius_px or (0.02 * size, 0.05 * size)
+    half_line = 0.5 * (line_px or max(1.0, 0.008 * size))
+    lead = states.shape[:-1]
+    s = states.reshape(-1, 7).to(torch.float32)
+    pos, rot = s[:, :3], axis_angle_to_matrix(s[:, 3:6])
+    ends = pos[:, None, :] + AXIS_LENGTH_M * rot.transpose(1, 2)  # (N, 3 axes, 3): rows = axis directions
+    (centre, _), (tips, _) = camera.project(pos), camera.project(ends)
+
+    ys, xs = torch.meshgrid(torch.arange(size, dtype=torch.float32), torch.arange(size, dtype=torch.float32),
+                            indexing="ij")
+    grid = torch.stack([xs, ys], dim=-1).to(s.device)  # (H, W, 2) as (u, v)
+    radius = r_closed + (r_open - r_closed) * s[:, 6].clamp(0, 1)
+    disc = _coverage((grid - centre[:, None, None, :]).norm(dim=-1), radius[:, None, None])  # (N, H, W)
+    lines = _coverage(_segment_distance(grid, centre[:, None, :].expand_as(tips), tips), half_line)  # (N, 3, H, W)
+
+    colours = torch.tensor(AXIS_COLOURS, device=s.device)  # (3 axes, 3 rgb)
+    img = disc[:, None].expand(-1, 3, -1, -1).clone()  # white disc
+    for axis in range(3):  # paint the three axes over the disc (3 iterations, whole batch each)
+        alpha = lines[:, axis, None]
+        img = img * (1 - alpha) + alpha * colours[axis][None, :, None, None]
+    return img.reshape(*lead, 3, size, size)
