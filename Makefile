@@ -49,6 +49,7 @@ pipeline: setup
 	$(PY) -m stages.collect $(STAGE_ARGS) source=expert
 	$(PY) -m stages.train_policy $(STAGE_ARGS)
 	$(PY) -m stages.collect $(STAGE_ARGS) source=policy
+	$(PY) -m stages.train_worldsim $(STAGE_ARGS)
 	$(PY) -m stages.evaluate $(STAGE_ARGS) termination=oracle
 	$(PY) -m stages.evaluate $(STAGE_ARGS) termination=fixed
 

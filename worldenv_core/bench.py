@@ -1,7 +1,11 @@
-"""`make bench`: what the real simulator costs on this machine, measured side by side.
+"""`make bench`: what the real simulator and the world simulator cost on this machine, side by side.
 
 Prints medians over repeats (shared machines are noisy): env build, one physics-only step,
-one camera render, and the throughput of expert collection (kept frames per second).
+one camera render, the throughput of expert collection (kept frames per second), and imagined
+env-steps per second of the world simulator at batch 8 against real env-steps per second
+(physics + a render of the same camera at the same resolution every step), as a ratio.
+The world model's cost does not depend on its weights, so an untrained model of the configured
+architecture is timed unless `--worldsim <checkpoint>` names a trained one.
 """
 
 from __future__ import annotations
@@ -55,6 +59,55 @@ def simulator_costs(suite: str, task_id: int, image_size: int, cameras: list[str
     }
 
 
+def world_model_speed(suite: str, task_id: int, image_size: int, camera: str, repeats: int, batch: int,
+                      checkpoint: str | None, sampling_steps=(1, 4)) -> dict:
+    """Imagined vs real env-steps per second, measured in this one process."""
+    import torch
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    from worldenv_core.envs.imagined import ImaginedSimulator
+    from worldenv_core.kinematics import NextStateModel, PinholeCamera
+    from worldenv_core.models.checkpoint import load_model
+    from worldenv_core.stage import CONF_DIR
+
+    env = LiberoEnv(suite, task_id, cameras=[camera], image_size=image_size)
+    first = env.reset(init_state=0)
+    rng = np.random.default_rng(0)
+
+    def real_step():
+        env.step(np.r_[rng.uniform(-0.3, 0.3, 6), -1.0])
+        env.render()
+
+    real_ms = statistics.median(_median_ms(real_step, 8) for _ in range(repeats))
+    cam = PinholeCamera.from_sim(env.sim, camera, image_size)
+    frame0 = torch.from_numpy(env.render()[camera]).permute(2, 0, 1)
+    env.close()
+    if checkpoint:
+        model, _ = load_model(checkpoint, expect={"image_size": image_size})
+    else:
+        cfg = OmegaConf.load(CONF_DIR / "worldsim" / "latent_flow.yaml")
+        cfg.image_size, cfg.chunk, cfg.action_dim = image_size, 8, 7
+        model = instantiate(cfg, _convert_="all")
+    torch.manual_seed(0)
+    out = {"real_env_steps_per_s": round(1000 / real_ms, 2), "batch": batch, "chunk": model.chunk,
+           "params_M": round(sum(p.numel() for p in model.parameters()) / 1e6, 2), "torch_threads": torch.get_num_threads()}
+    for steps in sampling_steps:
+        sim = ImaginedSimulator(model, NextStateModel(), cam, sampling_steps=steps)
+        actions = torch.from_numpy(rng.uniform(-0.3, 0.3, (batch, model.chunk, 7))).float()
+
+        def imagine():
+            sim.reset(frame0[None, None].expand(batch, 1, -1, -1, -1), torch.from_numpy(first.proprio)[None].expand(batch, -1))
+            sim.step(actions)  # one chunk for every rollout, decoded to pixels
+
+        imagine()  # warm-up
+        ms = statistics.median(_median_ms(imagine, 2) for _ in range(repeats))
+        rate = batch * model.chunk * 1000 / ms
+        out[f"imagined_env_steps_per_s_{steps}step"] = round(rate, 1)
+        out[f"speedup_{steps}step"] = round(rate * real_ms / 1000, 1)
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--suite", default="libero_object")
@@ -62,8 +115,16 @@ def main() -> None:
     parser.add_argument("--image-size", type=int, default=128)
     parser.add_argument("--cameras", nargs="+", default=["agentview"])
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--batch", type=int, default=8, help="imagined rollouts per world-model call")
+    parser.add_argument("--worldsim", default=None, help="a train_worldsim checkpoint (default: untrained, same cost)")
+    parser.add_argument("--only", choices=["simulator", "worldsim"], default=None)
     args = parser.parse_args()
-    result = simulator_costs(args.suite, args.task_id, args.image_size, args.cameras, args.repeats)
+    result = {}
+    if args.only != "worldsim":
+        result["simulator"] = simulator_costs(args.suite, args.task_id, args.image_size, args.cameras, args.repeats)
+    if args.only != "simulator":
+        result["world_model"] = world_model_speed(args.suite, args.task_id, args.image_size, args.cameras[0],
+                                                  args.repeats, args.batch, args.worldsim)
     print(json.dumps(result, indent=2))
 
 

@@ -81,3 +81,12 @@ def setup_logging() -> None:
                         format="[%(asctime)s %(name)s %(levelname)s] %(message)s", datefmt="%H:%M:%S")
     for noisy in ("robosuite", "OpenGL", "numba", "matplotlib"):
         logging.getLogger(noisy).setLevel(logging.ERROR)
+
+
+def compose_config(stage: str, overrides=()) -> DictConfig:
+    """A stage's config exactly as `python -m stages.<stage> <overrides...>` would see it, for
+    running stages from Python (notebooks, tests): `run(compose_config("collect", ["+task=tiny"]))`."""
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose(stage, overrides=list(overrides))

@@ -45,19 +45,23 @@ class Checkpoints:
     def __init__(self, work_dir: str | Path, keep: int = 2):
         self.dir = Path(work_dir) / "checkpoints"
         self.keep = keep
+        self.extra: dict = {}  # the `extra` of the checkpoint last restored
 
     @property
     def last(self) -> Path | None:
         link = self.dir / "last"
         return link.resolve() if link.exists() else None
 
-    def save(self, step: int, model, model_config: dict, meta: dict, optimizers: dict, history: list[dict]) -> Path:
+    def save(self, step: int, model, model_config: dict, meta: dict, optimizers: dict, history: list[dict],
+             extra: dict | None = None) -> Path:
+        """`extra`: more training state to restore (e.g. EMA weights), left in `self.extra` by `restore`."""
         path = save_model(self.dir / f"{step:07d}", model, model_config, {**meta, "step": step})
         state = {
             "step": step,
             "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
             "rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()},
             "history": history,
+            "extra": extra or {},
         }
         torch.save(state, path / (TRAIN_STATE + ".tmp"))
         (path / (TRAIN_STATE + ".tmp")).rename(path / TRAIN_STATE)
@@ -83,6 +87,7 @@ class Checkpoints:
         torch.set_rng_state(state["rng"]["torch"])
         np.random.set_state(state["rng"]["numpy"])
         random.setstate(state["rng"]["python"])
+        self.extra = state.get("extra", {})
         log.info("resumed from %s (step %d)", last, state["step"])
         return int(state["step"]), list(state["history"])
 

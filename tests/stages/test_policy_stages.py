@@ -3,28 +3,23 @@ import json
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
-
 from stages.collect.run import run as collect
 from stages.evaluate.run import run as evaluate
 from stages.train_policy.run import run as train_policy
 from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.manifest import ArtefactError, Manifest
-from worldenv_core.stage import CONF_DIR, ConfigError
+from worldenv_core.stage import ConfigError, compose_config
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
 
 
 def cfg(stage, exp, *overrides):
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return compose(stage, overrides=["+task=tiny", "scale=tiny", f"experiment_dir={exp}", *overrides])
+    return compose_config(stage, ["+task=tiny", "scale=tiny", f"experiment_dir={exp}", *overrides])
 
 
 @pytest.fixture(scope="module")
-def experiment(tmp_path_factory):
-    exp = tmp_path_factory.mktemp("exp")
-    collect(cfg("collect", exp, f"data_dir={exp / 'data'}", "episodes_per_task=1", "workers=1", "progress=false",
-                "lerobot_export=false"))
+def experiment(demo_experiment):
+    exp = demo_experiment
     small = ["train.steps=20", "scale_head.steps=10", "train.log_every=5", "train.checkpoint_every=10",
              "demos_per_task=1", "policy.hidden=64", "policy.backbone.widths=[8,16,16,16]", "policy.backbone.keypoints=8"]
     metrics = train_policy(cfg("train_policy", exp, *small))

@@ -14,7 +14,7 @@ import torch
 from worldenv_core.kinematics.camera import PinholeCamera
 from worldenv_core.kinematics.next_state import axis_angle_to_matrix
 
-AXIS_LENGTH_M = 0.06
+AXIS_LENGTH_M = 0.10
 AXIS_COLOURS = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 
 

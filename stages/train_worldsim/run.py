@@ -1,0 +1,240 @@
+"""Stage `train_worldsim`: the action-conditioned world simulator (paper sec. 4.1, appendix B.2).
+
+Phase 1 trains the autoencoder on frames (L1 + MSE). Every frame is then encoded once, and
+phase 2 trains the latent flow model on chunks, with EMA weights. Held-out episodes (every
+`holdout_every`-th) measure fidelity open loop, beside the copy-the-last-frame baseline, and the
+kinematic next-state model's error; side-by-side videos (real | imagined) are saved.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import torch
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from worldenv_core.data.dataset import EpisodeDataset
+from worldenv_core.data.mcap_io import read_episode
+from worldenv_core.envs.imagined import ImaginedSimulator, open_loop_fidelity
+from worldenv_core.kinematics.action_map import draw_action_maps
+from worldenv_core.kinematics.camera import PinholeCamera
+from worldenv_core.kinematics.next_state import NextStateModel, state_errors
+from worldenv_core.manifest import ArtefactError, StageRun, config_hash
+from worldenv_core.models.checkpoint import save_model
+from worldenv_core.models.worldsim_data import LatentChunks, encode_episode_frames
+from worldenv_core.stage import ConfigError, experiment, positive_int, require_task, resolved, seed_everything, setup_logging
+from worldenv_core.training import Checkpoints, batches, pick_device, plot_history
+from worldenv_core.viz import montage_video
+
+log = logging.getLogger("worldenv.train_worldsim")
+
+
+def validate(cfg: DictConfig) -> None:
+    require_task(cfg)
+    for key in ("ae.steps", "ae.batch_size", "flow.steps", "flow.batch_size", "log_every", "checkpoint_every",
+                "holdout_every", "worldsim.sampling_steps"):
+        positive_int(cfg, key)
+    if cfg.camera not in cfg.task.cameras:
+        raise ConfigError(f"camera {cfg.camera!r} is not one of the task's cameras {list(cfg.task.cameras)}")
+    if not 0.0 <= cfg.flow.ema < 1.0:
+        raise ConfigError(f"flow.ema must be in [0, 1), got {cfg.flow.ema}")
+
+
+def input_episodes(cfg: DictConfig, manifest, stage: StageRun) -> list[Path]:
+    tags = {"task": cfg.task.name, "scale": cfg.scale.name}
+    paths = stage.use(manifest.latest("collect", source="expert", **tags), kind="episodes")
+    if not cfg.expert_only:
+        try:
+            record = manifest.latest("collect", source="policy", **tags)
+        except ArtefactError as e:
+            raise ConfigError(f"{e}; collect policy rollouts first (`python -m stages.collect +task={cfg.task.name} "
+                              "source=policy`) or train on expert data only with expert_only=true") from None
+        paths += stage.use(record, kind="episodes")
+    return sorted(paths)
+
+
+def task_cameras(cfg: DictConfig, task_ids: list[int]) -> dict[int, PinholeCamera]:
+    """Each task's camera as the simulator has it (fixtures differ between scenes, cameras may too)."""
+    from worldenv_core.envs.libero_env import LiberoEnv
+
+    out = {}
+    for tid in task_ids:
+        with LiberoEnv(cfg.task.suite, tid, cameras=(), render=False) as env:
+            env.reset(init_state=0)
+            out[tid] = PinholeCamera.from_sim(env.sim, cfg.camera, cfg.task.image_size)
+    return out
+
+
+def _maps(proprio: torch.Tensor, task_ids, cameras: dict[int, PinholeCamera]) -> torch.Tensor:
+    """Action maps for a batch whose items may come from tasks with different cameras."""
+    out = torch.empty(*proprio.shape[:2], 3, cameras[next(iter(cameras))].image_size,
+                      cameras[next(iter(cameras))].image_size)
+    task_ids = torch.as_tensor(task_ids)
+    for tid in task_ids.unique().tolist():
+        sel = task_ids == tid
+        out[sel] = draw_action_maps(proprio[sel].float(), cameras[tid])
+    return out
+
+
+def run(cfg: DictConfig) -> dict:
+    setup_logging()
+    validate(cfg)
+    task = cfg.task
+    manifest = experiment(cfg)
+    seed_everything(cfg.seed)
+    device = pick_device(cfg.device)
+    config = resolved(cfg)
+    work = Path(cfg.experiment_dir) / "train_worldsim" / config_hash(config)
+    tags = {"task": task.name, "scale": cfg.scale.name, "data": "expert" if cfg.expert_only else "expert+policy"}
+    with StageRun(manifest, "train_worldsim", tags, config) as stage:
+        paths = input_episodes(cfg, manifest, stage)
+        held = set(paths[cfg.holdout_every - 1::cfg.holdout_every]) or {paths[-1]}
+        train_paths = [p for p in paths if p not in held]
+        if not train_paths:
+            raise ConfigError(f"only {len(paths)} episodes: none left for training after holding out {len(held)}")
+        episodes = [read_episode(p, cameras=[cfg.camera]) for p in train_paths]
+        held_eps = [read_episode(p, cameras=[cfg.camera]) for p in sorted(held)]
+        cameras = task_cameras(cfg, sorted({ep.meta.task_id for ep in episodes + held_eps}))
+        kinematics = NextStateModel.fit(episodes)
+        log.info("kinematics fitted on %d episodes: %s", len(episodes), kinematics)
+
+        model_cfg = OmegaConf.to_container(cfg.worldsim, resolve=True)
+        model = instantiate(model_cfg, _convert_="all").to(device)
+        ema = copy.deepcopy(model).requires_grad_(False)
+        opt_ae = torch.optim.AdamW(model.autoencoder.parameters(), lr=cfg.ae.lr)
+        opt_flow = torch.optim.AdamW(model.velocity.parameters(), lr=cfg.flow.lr)
+        optimizers = {"ae": opt_ae, "flow": opt_flow}
+        ckpts = Checkpoints(work)
+        step, history = ckpts.restore(model, optimizers)
+        if "ema" in ckpts.extra:
+            ema.load_state_dict(ckpts.extra["ema"])
+        meta = {"kind": "worldsim", "task": task.name, "suite": task.suite, "camera": cfg.camera,
+                "image_size": task.image_size, "chunk": task.chunk, "action_dim": task.action_dim,
+                "kinematics": kinematics.to_dict(), "cameras": {str(t): c.to_dict() for t, c in cameras.items()},
+                "episodes": len(episodes), "expert_only": bool(cfg.expert_only)}
+        n_ae, total = cfg.ae.steps, cfg.ae.steps + cfg.flow.steps
+        log.info("training on %d episodes (%d held out) for %d + %d steps on %s; work dir %s",
+                 len(episodes), len(held_eps), n_ae, cfg.flow.steps, device, work)
+        frames = EpisodeDataset(train_paths, cameras=[cfg.camera], mode="frame")
+        ae_batches = batches(frames, cfg.ae.batch_size, cfg.seed, start_step=min(step, n_ae))
+        chunks = flow_batches = None
+        t0, running = time.perf_counter(), defaultdict(list)
+        bar = tqdm(range(step, total), initial=step, total=total, desc="train_worldsim", dynamic_ncols=True)
+        for step in bar:
+            model.train()
+            if step < n_ae:
+                x = next(ae_batches)["images"][cfg.camera].to(device)
+                target = x.float() / 255
+                recon = model.autoencoder.decode(model.autoencoder.encode(x))
+                loss = (recon - target).abs().mean() + (recon - target).pow(2).mean()
+                opt_ae.zero_grad(set_to_none=True)
+                loss.backward()
+                opt_ae.step()
+                running["ae"].append(loss.item())
+            else:
+                if chunks is None:  # entering (or resuming in) phase 2: encode every frame once
+                    chunks = _latent_chunks(model, episodes, device, fresh=step == n_ae)
+                    if step == n_ae:  # the EMA starts from the trained autoencoder
+                        ema.load_state_dict(model.state_dict())
+                    flow_batches = batches(chunks, cfg.flow.batch_size, cfg.seed + 1, start_step=step - n_ae)
+                b = next(flow_batches)
+                memory = b["memory"].to(device) / model.latent_scale
+                memory = memory + cfg.flow.memory_noise * torch.randn_like(memory)
+                maps = _maps(b["proprio"], b["task_id"], cameras).to(device)
+                loss = model.flow_loss(memory, maps, b["target"].to(device) / model.latent_scale,
+                                       b["actions"].to(device), b["valid"].to(device))
+                opt_flow.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(model.velocity.parameters(), 1.0)
+                opt_flow.step()
+                with torch.no_grad():
+                    for pe, p in zip(ema.parameters(), model.parameters()):
+                        pe.lerp_(p, 1 - cfg.flow.ema)
+                    for be, bm in zip(ema.buffers(), model.buffers()):
+                        be.copy_(bm)
+                running["flow"].append(loss.item())
+            done = step + 1
+            if done % cfg.log_every == 0 or done == total:
+                entry = {"step": done, **{k: sum(v) / len(v) for k, v in running.items()}}
+                history.append(entry)
+                running.clear()
+                bar.set_postfix({k: f"{v:.4f}" for k, v in entry.items() if k != "step"})
+            if done % cfg.checkpoint_every == 0 or done == total:
+                ckpts.save(done, model, model_cfg, meta, optimizers, history, extra={"ema": ema.state_dict()})
+        bar.close()
+        train_s = time.perf_counter() - t0
+        final = save_model(work / "worldsim", ema.cpu(), model_cfg, {**meta, "step": total})
+        for f in sorted(final.iterdir()):
+            stage.add_output(f, kind="checkpoint")
+        stage.add_output(plot_history(history, work / "losses.png", f"train_worldsim {task.name}"), kind="plot")
+        report = evaluate_fidelity(cfg, ema, kinematics, cameras, held_eps, work)
+        for name in ("fidelity.json", "fidelity.md"):
+            stage.add_output(work / name, kind="report")
+        for video in sorted((work / "videos").glob("*.gif")):
+            stage.add_output(video, kind="video")
+        stage.metrics.update({"episodes": len(episodes), "held_out": len(held_eps), "steps": total,
+                              "train_wall_s": round(train_s, 1), "device": str(device), **report})
+        log.info("world simulator saved to %s; metrics %s", final, json.dumps(stage.metrics))
+    return stage.metrics
+
+
+def _latent_chunks(model, episodes, device, fresh: bool) -> LatentChunks:
+    model.eval()
+    cam = next(iter(episodes[0].images))
+    latents = [encode_episode_frames(model, ep.images[cam], device=device) for ep in episodes]
+    if fresh:  # scales are set once from the trained autoencoder and then saved with the model
+        z = torch.cat(latents)
+        model.latent_scale.fill_(float(z.std()))
+        # the flow's targets are changes from the current latent over 1..K steps
+        deltas = torch.cat([(lat[k:] - lat[:-k]).flatten() for lat in latents for k in range(1, model.chunk + 1)
+                            if len(lat) > k])
+        model.delta_scale.fill_(float(deltas.std() / z.std()))
+    return LatentChunks(latents, episodes, model.memory_offsets, model.chunk)
+
+
+def evaluate_fidelity(cfg, model, kinematics, cameras, held_eps, work: Path) -> dict:
+    """Open-loop fidelity on held-out episodes (model vs copy-last-frame) and kinematics error."""
+    model.eval()
+    by_task = defaultdict(list)
+    for ep in held_eps:
+        by_task[ep.meta.task_id].append(ep)
+    per_task, videos = [], []
+    g = torch.Generator().manual_seed(cfg.seed)
+    for tid, eps in sorted(by_task.items()):
+        sim = ImaginedSimulator(model, kinematics, cameras[tid])
+        out = open_loop_fidelity(sim, eps, tuple(cfg.fidelity.horizons), cfg.fidelity.starts_per_episode,
+                                 camera=cfg.camera, generator=g)
+        per_task.append(out["horizons"])
+        videos += out["videos"]
+    fidelity = {}  # horizon -> metrics averaged over all starts of all tasks
+    for h in cfg.fidelity.horizons:
+        parts = [r[h] for r in per_task if r[h]["n"]]
+        n = sum(p["n"] for p in parts)
+        if n:
+            fidelity[h] = {k: sum(p[k] * p["n"] for p in parts) / n for k in parts[0] if k != "n"} | {"n": n}
+    kin = {f"kinematics_{h}step": state_errors(kinematics, held_eps, h) for h in (1, cfg.task.chunk)}
+    (work / "videos").mkdir(exist_ok=True)
+    for i, (real, fake) in enumerate(videos[: cfg.fidelity.videos]):
+        n = min(len(real), len(fake))
+        side = torch.cat([real[:n], fake[:n]], dim=-1).permute(0, 2, 3, 1).numpy()
+        montage_video([side], work / "videos" / f"real_vs_imagined_{i}.gif", max_frames=n)
+    report = {"fidelity": {str(h): v for h, v in sorted(fidelity.items())}, **kin,
+              "beats_copy_baseline": bool(fidelity) and all(v["model_psnr"] > v["copy_psnr"] for v in fidelity.values())}
+    (work / "fidelity.json").write_text(json.dumps(report, indent=2))
+    md = ["| horizon (steps) | PSNR model | PSNR copy-last | SSIM model | SSIM copy-last | n |", "|---|---|---|---|---|---|"]
+    md += [f"| {h} | {v['model_psnr']:.2f} | {v['copy_psnr']:.2f} | {v['model_ssim']:.3f} | {v['copy_ssim']:.3f} | {v['n']} |"
+           for h, v in sorted(fidelity.items())]
+    md += ["", "| kinematics | pos median (mm) | pos p90 (mm) | rot median (deg) | gripper MAE |", "|---|---|---|---|---|"]
+    md += [f"| {v['horizon']} step(s) | {v['pos_mm_median']:.2f} | {v['pos_mm_p90']:.2f} | {v['rot_deg_median']:.2f} | "
+           f"{v['grip_mae']:.3f} |" for v in kin.values()]
+    (work / "fidelity.md").write_text("\n".join(md) + "\n")
+    print("\n".join(md))
+    return report

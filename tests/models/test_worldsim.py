@@ -1,0 +1,111 @@
+"""The latent flow world simulator: overfits real frames, samples with 1 and 4 steps, and its
+checkpoint refuses another resolution or chunk size."""
+import numpy as np
+import pytest
+import torch
+
+from worldenv_core.envs.imagined import ImaginedSimulator
+from worldenv_core.envs.recording import expert_attempt, to_episode
+from worldenv_core.kinematics import NextStateModel, PinholeCamera, draw_action_maps
+from worldenv_core.metrics import psnr, ssim
+from worldenv_core.models.checkpoint import CheckpointError, load_model, save_model
+from worldenv_core.models.worldsim import Autoencoder, WorldSimulator
+from worldenv_core.models.worldsim_data import LatentChunks, encode_episode_frames
+
+TINY = dict(image_size=64, chunk=4, memory_offsets=(0, 2), latent_size=16, latent_channels=4, ae_widths=(8, 16),
+            width=16, map_channels=4, use_raw_actions=True, sampling_steps=4)
+TINY_CFG = {"_target_": "worldenv_core.models.worldsim.WorldSimulator", **TINY, "memory_offsets": [0, 2],
+            "ae_widths": [8, 16]}
+
+
+def test_metrics_on_known_images():
+    x = torch.rand(2, 3, 32, 32)
+    assert torch.all(psnr(x, x) > 90) and torch.allclose(ssim(x, x), torch.ones(2))
+    noisy = (x + 0.2 * torch.randn_like(x)).clamp(0, 1)
+    assert torch.all(ssim(noisy, x) < 0.9) and torch.all(psnr(noisy, x) < 20)
+    np.testing.assert_allclose(psnr(torch.zeros(1, 3, 4, 4), torch.full((1, 3, 4, 4), 0.1)).item(), 20.0, atol=1e-4)
+
+
+def test_bad_sizes_are_rejected():
+    with pytest.raises(ValueError, match="power of two"):
+        Autoencoder(image_size=48, latent_size=16)
+    with pytest.raises(ValueError, match="sampling_steps"):
+        WorldSimulator(**{**TINY, "sampling_steps": 0})
+    with pytest.raises(ValueError, match="memory_offsets"):
+        WorldSimulator(**{**TINY, "memory_offsets": (2, 4)})
+
+
+@pytest.fixture(scope="module")
+def real_episode(tiny_env):
+    traj = expert_attempt(tiny_env, 0, seed=0, max_steps=60)
+    ep = to_episode(tiny_env, traj, init_state_index=0, seed=0, source="expert")
+    cam = PinholeCamera.from_sim(tiny_env.sim, "agentview", 64)
+    return ep, cam
+
+
+@pytest.mark.sim
+@pytest.mark.timeout(300)
+def test_tiny_world_model_overfits_real_frames_and_samples_with_1_and_4_steps(real_episode, tmp_path):
+    ep, cam = real_episode
+    torch.manual_seed(0)
+    model = WorldSimulator(**TINY)
+    frames = torch.from_numpy(ep.images["agentview"]).permute(0, 3, 1, 2)
+    opt = torch.optim.Adam(model.autoencoder.parameters(), lr=2e-3)
+    for _ in range(150):
+        recon = model.autoencoder.decode(model.autoencoder.encode(frames))
+        loss = (recon - frames.float() / 255).abs().mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert psnr(recon.detach(), frames.float() / 255).mean() > 22  # the autoencoder reproduces the scene
+
+    latents = encode_episode_frames(model, ep.images["agentview"])
+    model.latent_scale.fill_(float(latents.std()))
+    data = LatentChunks([latents], [ep], model.memory_offsets, model.chunk)
+    batch = {k: torch.stack([data[i][k] for i in range(0, len(data), 4)]) for k in ("memory", "target", "proprio", "actions", "valid")}
+    maps = draw_action_maps(batch["proprio"], cam)
+    opt = torch.optim.Adam(model.velocity.parameters(), lr=2e-3)
+    g = torch.Generator().manual_seed(0)
+    losses = []
+    for _ in range(200):
+        loss = model.flow_loss(batch["memory"] / model.latent_scale, maps, batch["target"] / model.latent_scale,
+                               batch["actions"], batch["valid"], generator=g)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert np.mean(losses[-20:]) < 0.5 * np.mean(losses[:20])
+
+    model.eval()
+    mem = batch["memory"][:3] / model.latent_scale
+    for steps in (1, 4):
+        z = model.predict_latents(mem, maps[:3], batch["actions"][:3], steps=steps, generator=g)
+        assert z.shape == batch["target"][:3].shape and torch.isfinite(z).all()
+        err = (z - batch["target"][:3] / model.latent_scale).pow(2).mean()
+        copy = (mem[:, :1] - batch["target"][:3] / model.latent_scale).pow(2).mean()
+        assert err < copy, f"{steps}-step samples are no closer to the real latents than copying the last one"
+
+    # imagined rollouts through kinematics + action maps, batched
+    sim = ImaginedSimulator(model, NextStateModel.fit([ep]), cam, sampling_steps=1)
+    sim.reset(frames[None, :3].expand(2, -1, -1, -1, -1), torch.from_numpy(ep.proprio[2:3]).expand(2, -1),
+              torch.from_numpy(ep.proprio[1:2]).expand(2, -1))
+    out = sim.step(torch.from_numpy(ep.actions[2:6])[None].expand(2, -1, -1))
+    assert out.frames.shape == (2, 4, 3, 64, 64) and out.frames.dtype == torch.uint8
+    assert sim.latents.shape[1] == 3 + 4
+    with pytest.raises(ValueError, match="actions must be"):
+        sim.step(torch.zeros(2, 3, 7))
+
+    # the checkpoint is self-describing and refuses another task contract
+    path = save_model(tmp_path / "ws", model, TINY_CFG, {"image_size": 64, "chunk": 4})
+    loaded, _ = load_model(path, expect={"image_size": 64, "chunk": 4})
+    torch.testing.assert_close(loaded.encode(frames[:2]), model.encode(frames[:2]))
+    with pytest.raises(CheckpointError, match="image_size=64.*image_size=128"):
+        load_model(path, expect={"image_size": 128})
+    with pytest.raises(CheckpointError, match="chunk=4.*chunk=8"):
+        load_model(path, expect={"image_size": 64, "chunk": 8})
+
+
+def test_imagined_simulator_refuses_a_camera_of_another_resolution():
+    cam = PinholeCamera("agentview", 128, 100.0, np.zeros(3), np.eye(3))
+    with pytest.raises(ValueError, match="128 px.*64 px"):
+        ImaginedSimulator(WorldSimulator(**TINY), NextStateModel(), cam)

@@ -1,0 +1,120 @@
+"""Imagined rollouts: the world simulator stepped chunk by chunk, batched over rollouts.
+
+`ImaginedSimulator` keeps, per rollout, the latent history (for the sparse memory), the current
+proprio state and the arm's last motion (for the kinematic model's momentum). `step(actions)`
+advances every rollout by one action chunk: kinematics gives s_{t+1..t+K}, the camera draws
+their action maps, the world model predicts the K latents. Pixels are decoded only on request.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from worldenv_core.kinematics.action_map import draw_action_maps
+from worldenv_core.kinematics.camera import PinholeCamera
+from worldenv_core.kinematics.next_state import NextStateModel, observed_carry
+from worldenv_core.models.worldsim import WorldSimulator
+
+
+@dataclass
+class ChunkResult:
+    proprio: torch.Tensor  # (B, K, 7) s_{t+1..t+K}
+    latents: torch.Tensor  # (B, K, C, h, w)
+    action_maps: torch.Tensor  # (B, K, 3, H, W)
+    frames: torch.Tensor | None = None  # (B, K, 3, H, W) uint8 when decoded
+
+
+class ImaginedSimulator:
+    def __init__(self, model: WorldSimulator, kinematics: NextStateModel, camera: PinholeCamera,
+                 sampling_steps: int | None = None, device: str | torch.device = "cpu"):
+        if camera.image_size != model.image_size:
+            raise ValueError(f"camera renders {camera.image_size} px but the world model makes {model.image_size} px")
+        self.model = model.to(device).eval()
+        self.kinematics, self.camera = kinematics, camera
+        self.steps = sampling_steps
+        self.device = torch.device(device)
+        self.latents: torch.Tensor | None = None  # (B, T, C, h, w), all frames so far
+        self.proprio: torch.Tensor | None = None
+        self.carry = None
+
+    @torch.no_grad()
+    def reset(self, frames: torch.Tensor, proprio: torch.Tensor, prev_proprio: torch.Tensor | None = None) -> None:
+        """frames (B, T0, 3, H, W) uint8: the real frames so far (T0 >= 1, the last is current);
+        proprio (B, 7) the current state; prev_proprio (B, 7) the one before (momentum), if any."""
+        if frames.dim() != 5 or frames.shape[-1] != self.model.image_size:
+            raise ValueError(f"frames must be (B, T, 3, {self.model.image_size}, {self.model.image_size}), got {tuple(frames.shape)}")
+        self.latents = self.model.encode(frames.to(self.device))
+        self.proprio = proprio.to(self.device, torch.float64)
+        self.carry = observed_carry(prev_proprio.to(self.device, torch.float64), self.proprio) if prev_proprio is not None else None
+
+    def memory(self) -> torch.Tensor:
+        t = self.latents.shape[1] - 1
+        return self.latents[:, self.model.memory_indices(t)]
+
+    @torch.no_grad()
+    def step(self, actions: torch.Tensor, decode: bool = True, generator: torch.Generator | None = None) -> ChunkResult:
+        """actions (B, K, 7) in the simulator's units -> the next K imagined frames."""
+        if self.latents is None:
+            raise RuntimeError("call reset() before step()")
+        b, k = actions.shape[:2]
+        if b != self.latents.shape[0] or k != self.model.chunk:
+            raise ValueError(f"actions must be ({self.latents.shape[0]}, {self.model.chunk}, 7), got {tuple(actions.shape)}")
+        actions = actions.to(self.device)
+        states, self.carry = self.kinematics.rollout(self.proprio, actions.double(), self.carry)
+        maps = draw_action_maps(states.float(), self.camera)
+        z = self.model.predict_latents(self.memory(), maps, actions.float(), steps=self.steps, generator=generator)
+        self.latents = torch.cat([self.latents, z], dim=1)
+        self.proprio = states[:, -1]
+        frames = (self.model.decode(z) * 255).round().to(torch.uint8) if decode else None
+        return ChunkResult(proprio=states.float(), latents=z, action_maps=maps, frames=frames)
+
+
+@torch.no_grad()
+def open_loop_fidelity(sim: ImaginedSimulator, episodes, horizons=(8, 16, 32, 64), starts_per_episode: int = 2,
+                       camera: str = "agentview", generator: torch.Generator | None = None) -> dict:
+    """Replay held-out action sequences in imagination and compare with the real frames.
+
+    From `starts_per_episode` start steps per episode (spread over it), the simulator gets the real
+    frames so far and then only the recorded actions, open loop, for max(horizons) steps. Returns,
+    per horizon h, PSNR and SSIM of the frame h steps ahead, for the model and for the
+    copy-the-last-real-frame baseline, plus `videos`: (real, imagined) frame stacks of the first
+    start of every episode for side-by-side viewing."""
+    from worldenv_core.metrics import psnr, ssim
+
+    k, longest = sim.model.chunk, max(horizons)
+    n_chunks = -(-longest // k)
+    rows = {h: {"model_psnr": [], "model_ssim": [], "copy_psnr": [], "copy_ssim": []} for h in horizons}
+    videos = []
+    for ep in episodes:
+        imgs = torch.from_numpy(ep.images[camera]).permute(0, 3, 1, 2)  # (T+1, 3, H, W)
+        proprio = torch.from_numpy(ep.proprio).double()
+        actions = torch.from_numpy(ep.actions).float()
+        last_start = ep.length - n_chunks * k
+        if last_start < 1:
+            continue
+        starts = torch.linspace(1, last_start, starts_per_episode).round().long().unique().tolist()
+        # all starts of an episode run as one batch
+        acts = torch.stack([actions[s:s + n_chunks * k] for s in starts]).view(len(starts), n_chunks, k, -1)
+        sim.reset(_histories(imgs, starts, sim.model.history), proprio[starts], proprio[[s - 1 for s in starts]])
+        frames = torch.cat([sim.step(acts[:, c], generator=generator).frames for c in range(n_chunks)], dim=1)
+        for h in horizons:
+            real = torch.stack([imgs[s + h] for s in starts]).float() / 255
+            fake = frames[:, h - 1].float() / 255
+            copy = torch.stack([imgs[s] for s in starts]).float() / 255
+            rows[h]["model_psnr"] += psnr(fake, real).tolist()
+            rows[h]["model_ssim"] += ssim(fake, real).tolist()
+            rows[h]["copy_psnr"] += psnr(copy, real).tolist()
+            rows[h]["copy_ssim"] += ssim(copy, real).tolist()
+        s0 = starts[0]
+        videos.append((imgs[s0 + 1:s0 + 1 + frames.shape[1]], frames[0, : ep.length - s0]))
+    summary = {h: {key: (sum(v) / len(v) if v else float("nan")) for key, v in r.items()} | {"n": len(r["model_psnr"])}
+               for h, r in rows.items()}
+    return {"horizons": summary, "videos": videos}
+
+
+def _histories(imgs: torch.Tensor, starts: list[int], history: int) -> torch.Tensor:
+    """The last `history` + 1 real frames before each start (edge-padded at the episode start)."""
+    idx = torch.stack([torch.arange(s - history, s + 1).clamp(min=0) for s in starts])
+    return imgs[idx]

@@ -1,0 +1,53 @@
+"""Training data for the world simulator's flow model, in latent space.
+
+Once the autoencoder is trained, every frame of every episode is encoded once; the flow model
+then trains on chunks sliced from those latents (no image decoding or encoding per step), with
+action maps drawn from the recorded next states s_{t+1..t+K} (teacher forcing; at imagination
+time the kinematic model supplies them).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from worldenv_core.data.episode import Episode
+
+
+@torch.no_grad()
+def encode_episode_frames(model, frames: np.ndarray, batch: int = 64, device="cpu") -> torch.Tensor:
+    """(T, H, W, 3) uint8 -> unscaled latents (T, C, h, w) on the CPU."""
+    x = torch.from_numpy(frames).permute(0, 3, 1, 2)
+    out = [model.autoencoder.encode(x[i:i + batch].to(device)).cpu() for i in range(0, len(x), batch)]
+    return torch.cat(out)
+
+
+class LatentChunks(Dataset):
+    """Items at every step t of every episode: memory latents (M, C, h, w) at the model's memory
+    offsets, the next K latents (K, C, h, w), the K actions and next proprio states, a validity
+    mask for steps past the episode end (edge-padded), and the task id (its camera)."""
+
+    def __init__(self, latents: list[torch.Tensor], episodes: list[Episode], memory_offsets, chunk: int):
+        self.latents = latents
+        self.proprio = [torch.from_numpy(ep.proprio) for ep in episodes]
+        self.actions = [torch.from_numpy(ep.actions) for ep in episodes]
+        self.task_ids = [ep.meta.task_id for ep in episodes]
+        self.offsets = np.asarray(memory_offsets)
+        self.chunk = chunk
+        lengths = [ep.length for ep in episodes]
+        self.index = [(e, t) for e, n in enumerate(lengths) for t in range(n)]
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def __getitem__(self, i: int) -> dict:
+        e, t = self.index[i]
+        z, T = self.latents[e], len(self.actions[e])
+        mem = torch.from_numpy(np.clip(t - self.offsets, 0, None))
+        fut = np.arange(t + 1, t + 1 + self.chunk)
+        valid = fut <= T
+        fut_idx = torch.from_numpy(np.clip(fut, 0, T))
+        act_idx = torch.from_numpy(np.clip(fut - 1, 0, T - 1))
+        return {"memory": z[mem], "target": z[fut_idx], "proprio": self.proprio[e][fut_idx],
+                "actions": self.actions[e][act_idx], "valid": torch.from_numpy(valid), "task_id": self.task_ids[e]}
