@@ -69,5 +69,12 @@ def test_articulated_rules_without_sim_state_changes():
         assert s_on > 0 and q_on >= 0.5
         assert A.is_dish(ctx, "plate_1") and not A.is_dish(ctx, "akita_black_bowl_1")
         assert A.is_table_region(ctx, "main_table_stove_front_region")
+        # the opened top drawer will overhang the bowl: the planner moves it aside first
+        from worldenv_core.envs.expert.pick_place import _boxes_dist
+
+        boxes = A.opened_boxes(ctx, "wooden_cabinet_1_top_region")
+        assert boxes and A.opened_boxes(ctx, "flat_stove_1") is None
+        centre, half, _ = ctx.footprint("akita_black_bowl_1")
+        assert _boxes_dist(centre, boxes) < max(half)
     finally:
         env.close()

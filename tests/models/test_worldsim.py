@@ -49,15 +49,15 @@ def test_tiny_world_model_overfits_real_frames_and_samples_with_1_and_4_steps(re
     ep, cam = real_episode
     torch.manual_seed(0)
     model = WorldSimulator(**TINY)
-    frames = torch.from_numpy(ep.images["agentview"]).permute(0, 3, 1, 2)
+    frames = torch.from_numpy(ep.images["agentview"]).permute(0, 3, 1, 2).contiguous()
     opt = torch.optim.Adam(model.autoencoder.parameters(), lr=2e-3)
     for _ in range(150):
-        recon = model.autoencoder.decode(model.autoencoder.encode(frames))
-        loss = (recon - frames.float() / 255).abs().mean()
+        recon = model.autoencoder.decode(model.autoencoder.encode(frames[::3]))
+        loss = (recon - frames[::3].float() / 255).abs().mean()
         opt.zero_grad()
         loss.backward()
         opt.step()
-    assert psnr(recon.detach(), frames.float() / 255).mean() > 22  # the autoencoder reproduces the scene
+    assert psnr(recon.detach(), frames[::3].float() / 255).mean() > 22  # the autoencoder reproduces the scene
 
     latents = encode_episode_frames(model, ep.images["agentview"])
     model.latent_scale.fill_(float(latents.std()))

@@ -72,6 +72,7 @@ class Autoencoder(nn.Module):
         self.decoder = nn.Sequential(*dec)
 
     def encode(self, images: torch.Tensor) -> torch.Tensor:
+        images = images.contiguous()  # a permuted (channels-last) view makes CPU convs several times slower
         x = images.float() / 127.5 - 1.0 if images.dtype == torch.uint8 else images * 2 - 1
         return self.encoder(x)
 

@@ -30,7 +30,8 @@ Public API::
     turn_on(ctx, obj)          turn_off(ctx, obj)
     push_to(ctx, obj, region)
     articulated_container(ctx, region, relation) -> what to open before 'in' (or None)
-    ensure_accessible(ctx, region, relation)      # planner precondition
+    ensure_accessible(ctx, region, relation, obj) # planner precondition (+ make room for obj)
+    opened_boxes(ctx, drawer) -> where the drawer's geoms will be once open
     on_or_push(pick_place_on)                     # 'on' handler: dish -> table region = push
     is_open(ctx, name) / is_closed(ctx, name) / is_dish(ctx, obj) / is_table_region(ctx, name)
 """
@@ -382,7 +383,9 @@ def _pull_drawer(ctx: ExpertContext, name: str, jv: JointView, q_tgt: float, sig
         tgt = ctx.eef_pos() + out * min(0.03, remaining)
         tgt[2] = grasp[2]
         yield pose_action(ctx, tgt, gripper=GRIP_CLOSE, target_mat=R, max_speed=0.6)
-    yield from _grip(ctx, GRIP_OPEN, R, min_steps=3)
+    # a few steps free the bar (the fingers straddle it vertically and back off along the
+    # slide); waiting for the fingers to come to rest would only cost time
+    yield from _grip(ctx, GRIP_OPEN, R, min_steps=3, max_steps=6)
     # back off along the slide axis and rise clear of the fixture before turning the wrist
     # back to top-down (the turning hand sweeps ~10 cm around the grip site)
     p = ctx.eef_pos() + out * 0.07
@@ -718,19 +721,54 @@ def push_to(ctx: ExpertContext, obj: str, region: str, max_steps: int = 160) -> 
 __all__ = [
     "open_region", "close_region", "turn_on", "turn_off", "push_to",
     "articulated_container", "ensure_accessible", "on_or_push", "is_open", "is_closed",
-    "is_dish", "is_table_region", "JointView",
+    "is_dish", "is_table_region", "opened_boxes", "JointView",
 ]
 
 
 # ---------------------------------------------------------------------------- planner rules
-def ensure_accessible(ctx: ExpertContext, region: str, relation: str = "in") -> Iterator[Action]:
+def opened_boxes(ctx: ExpertContext, name: str) -> list[tuple[np.ndarray, np.ndarray]] | None:
+    """World AABBs (lo, hi), one per collision geom, the moving part of a *drawer* will
+    occupy once opened.
+
+    The drawer's collision geoms shifted along the slide axis by the distance still to go;
+    None for anything but a closed slide joint (doors swing, nothing to predict here).
+    """
+    joints = _movable_joints(ctx, name)
+    if not joints or joints[0].type != SLIDE:
+        return None
+    jv = joints[0]
+    q_tgt, _ = _target_q(ctx, name, "open")
+    shift = jv.axis * (q_tgt - jv.qpos)
+    boxes = []
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
+    # per geom: one box around drawer + handle would swell the keep-out by the handle's reach
+    for g in jv.geoms():
+        c, h = ctx.model.geom_aabb[g][:3], ctx.model.geom_aabb[g][3:]
+        R = ctx.data.geom_xmat[g].reshape(3, 3)
+        pts = ctx.data.geom_xpos[g] + (c + signs * h) @ R.T + shift
+        boxes.append((pts.min(0), pts.max(0)))
+    return boxes or None
+
+
+def ensure_accessible(ctx: ExpertContext, region: str, relation: str = "in",
+                      obj: str | None = None) -> Iterator[Action]:
     """Precondition for 'in'/'on' targets: a region inside a closed articulated container
-    (a drawer region, the microwave's heating region) is opened first."""
+    (a drawer region, the microwave's heating region) is opened first.
+
+    If ``obj`` (the thing to put there) stands where the opened drawer will overhang it, it
+    is moved aside first: once the drawer is out, no top-down grasp of it fits (the hand
+    would have to come down through the drawer), while with the drawer shut it is free.
+    """
     try:
         cont = articulated_container(ctx, region, relation)
     except Exception:  # noqa: BLE001 - not an articulated site
         cont = None
     if cont is not None and not is_open(ctx, cont):
+        boxes = opened_boxes(ctx, cont) if obj is not None else None
+        if boxes:
+            from .pick_place import clear_of_boxes  # pick_place does not import this module
+
+            yield from clear_of_boxes(ctx, obj, boxes)
         yield from open_region(ctx, cont)
     return True
 

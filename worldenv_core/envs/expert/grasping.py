@@ -91,18 +91,24 @@ HAND_HALF = (0.105, 0.037)
 FINGERS_HALF = (0.052, 0.015)
 
 
+def rect_margin(pts: np.ndarray, centre: np.ndarray, yaw: float, half: tuple[float, float]) -> float:
+    """Smallest xy margin (m, negative = inside) between points and a rectangle with
+    half-extents ``half`` (along ``yaw``, across) centred at ``centre``."""
+    if not len(pts):
+        return 1.0
+    axis = np.array([np.cos(yaw), np.sin(yaw)])
+    perp = np.array([-axis[1], axis[0]])
+    rel = pts - centre[:2]
+    return float(np.maximum(np.abs(rel @ axis) - half[0], np.abs(rel @ perp) - half[1]).min())
+
+
 def hand_clearance(ctx: ExpertContext, name: str, pos: np.ndarray, yaw: float) -> float:
     """Smallest xy margin (m, negative = collision) between the hand at a grasp pose and
     other objects: the palm against anything taller than its underside, the open fingers
     against anything taller than the fingertips."""
-    axis = np.array([np.cos(yaw), np.sin(yaw)])
-    perp = np.array([-axis[1], axis[0]])
     margin = 1.0
-    for z_above, (hx, hy) in ((pos[2] + PALM_ABOVE, HAND_HALF), (pos[2] - FINGERTIP_BELOW, FINGERS_HALF)):
-        pts = _obstacle_points(ctx, name, z_above=z_above) - pos[:2]
-        if len(pts):
-            d = np.maximum(np.abs(pts @ axis) - hx, np.abs(pts @ perp) - hy)
-            margin = min(margin, float(d.min()))
+    for z_above, half in ((pos[2] + PALM_ABOVE, HAND_HALF), (pos[2] - FINGERTIP_BELOW, FINGERS_HALF)):
+        margin = min(margin, rect_margin(_obstacle_points(ctx, name, z_above=z_above), pos, yaw, half))
     return margin
 
 
@@ -157,6 +163,10 @@ def rim_grasp(ctx: ExpertContext, name: str, jitter: float = 0.0) -> GraspPlan:
     # Only geoms reaching above the object's base can hit the fingers; lower ones are what
     # it stands on (table, cabinet top, drawer floor) and must not veto a side.
     obstacles = _obstacle_points(ctx, name, z_above=max(z - FINGERTIP_BELOW - 0.01, lo[2] + 0.005))
+    # The palm is ~21 cm long along the closing (here: radial) axis, so it reaches well past
+    # the centre; whatever stands above its underside (an open drawer overhanging the
+    # object) blocks the straight descent even where the fingers are free.
+    palm_obstacles = _obstacle_points(ctx, name, z_above=z + PALM_ABOVE)
     base = _robot_base_xy(ctx)
     to_robot = base - centre
     to_robot /= np.linalg.norm(to_robot) + 1e-9
@@ -170,7 +180,9 @@ def rim_grasp(ctx: ExpertContext, name: str, jitter: float = 0.0) -> GraspPlan:
         # object is often beyond the Panda's reach at table height, and reaching over the
         # object risks knocking it.
         feasible = clear > 0.045
-        score = (10.0 if feasible else 0.0) + float(d @ to_robot) + 5.0 * min(clear, 0.08)
+        palm_free = rect_margin(palm_obstacles, p, ang, HAND_HALF) > 0.005
+        score = (10.0 if feasible else 0.0) + (3.0 if palm_free else 0.0) + float(d @ to_robot) \
+            + 5.0 * min(clear, 0.08)
         if score > best_score:
             best, best_score = d, score
     d = best

@@ -6,6 +6,10 @@ contacts) that the object is really between the fingers and re-plans the grasp w
 little random jitter if not; placing is done by *object* position, using the grip-to-object
 offset measured after the lift, so off-centre (rim) grasps still land the object's body
 where LIBERO's checkers look (body origin within the region / within 3 cm of a target's).
+
+:func:`clear_of_boxes` makes room before a drawer is opened: an object standing where the
+open drawer will overhang it is slid a few centimetres aside first (the planner calls it
+through ``articulated.ensure_accessible``).
 """
 from __future__ import annotations
 
@@ -17,7 +21,7 @@ import numpy as np
 
 from . import motion as M
 from .context import ExpertContext
-from .grasping import plan_grasp
+from .grasping import HAND_HALF, _obstacle_points, _robot_base_xy, plan_grasp
 
 log = logging.getLogger(__name__)
 
@@ -148,3 +152,99 @@ def pick_and_place_on(ctx: ExpertContext, obj_name: str, target_name: str) -> It
 
 def pick_and_place_in(ctx: ExpertContext, obj_name: str, target_name: str) -> Iterator[np.ndarray]:
     return (yield from pick_and_place(ctx, obj_name, target_name, "in"))
+
+
+# ------------------------------------------------------------------ making room
+Box = tuple[np.ndarray, np.ndarray]
+
+
+def _boxes_dist(xy: np.ndarray, boxes: list[Box]) -> float:
+    """xy distance from a point to the nearest of some axis-aligned boxes (0 inside)."""
+    return min(float(np.linalg.norm(np.maximum(np.maximum(lo[:2] - xy, xy - hi[:2]), 0.0)))
+               for lo, hi in boxes)
+
+
+def free_spot(ctx: ExpertContext, obj: str, boxes: list[Box],
+              margin: float = 0.015, max_shift: float = 0.12) -> np.ndarray | None:
+    """Nearest table spot (xy of the footprint centre) from which ``obj`` can be grasped
+    with the palm clear of the boxes, its footprint clear of every other object by
+    ``margin``; among equally short shifts the most open one, leaning towards the robot
+    (the far side of the table is at the edge of reach)."""
+    centre, half, _ = ctx.footprint(obj)
+    radius = float(np.max(half))
+    others = _obstacle_points(ctx, obj, z_above=ctx.bottom_z(obj) + 0.005)
+    # The grasp it would get now, carried along with it: its palm footprint (sampled on a
+    # grid; the boxes are axis-aligned) must stay out from under the boxes.  A rim grasp may
+    # take any side of a round vessel, so for those every turn about the centre counts.
+    plan = plan_grasp(ctx, obj)
+    u = np.linspace(-1, 1, 5)
+    turns = np.linspace(0, 2 * np.pi, 12, endpoint=False) if plan.kind == "rim" else [0.0, np.pi]
+    palms = []
+    for phi in turns:
+        yaw = plan.yaw + phi
+        ax, perp = np.array([np.cos(yaw), np.sin(yaw)]), np.array([-np.sin(yaw), np.cos(yaw)])
+        Rz = np.array([[np.cos(phi), -np.sin(phi)], [np.sin(phi), np.cos(phi)]])
+        grip = Rz @ (plan.pos[:2] - centre)
+        palms.append(np.array([grip + a * HAND_HALF[0] * ax + b * HAND_HALF[1] * perp for a in u for b in u]))
+    to_robot = _robot_base_xy(ctx) - centre
+    to_robot /= np.linalg.norm(to_robot) + 1e-9
+    # first keep the grasp side planned now (usually the robot-facing one: quick to reach);
+    # only if that finds no spot, any side
+    for usable in (palms[:1], palms):
+        for dist in np.arange(0.02, max_shift + 1e-9, 0.01):
+            best, best_score = None, -np.inf
+            for ang in np.linspace(-np.pi, np.pi, 24, endpoint=False):
+                d = np.array([np.cos(ang), np.sin(ang)])
+                c = centre + dist * d
+                if not any(min(_boxes_dist(c + q, boxes) for q in palm) >= margin for palm in usable):
+                    continue
+                clear = float(np.min(np.linalg.norm(others - c, axis=1))) - radius if len(others) else 1.0
+                if clear < margin:
+                    continue
+                score = min(clear, 0.05) + 0.02 * float(d @ to_robot)
+                if score > best_score:
+                    best, best_score = c, score
+            if best is not None:
+                return best
+    return None
+
+
+def clear_of_boxes(ctx: ExpertContext, obj: str, boxes: list[Box],
+                   margin: float = 0.015) -> Iterator[np.ndarray]:
+    """If ``obj`` stands (partly) under the boxes -- e.g. where a drawer about to be opened
+    will overhang it -- slide it out: grasp, lift ~2 cm, move to :func:`free_spot`, set down.
+
+    Cheaper than a full pick-and-place (no carry height) and the only way to keep the
+    object graspable from above afterwards.  Returns True if nothing had to move or the move
+    was done.
+    """
+    centre, half, _ = ctx.footprint(obj)
+    radius = float(np.max(half))
+    top = ctx.top_z(obj)
+    over = [b for b in boxes if b[0][2] > top]  # overhanging parts; taller ones just collide
+    if not over or _boxes_dist(centre, over) >= radius + margin:
+        return True
+    spot = free_spot(ctx, obj, over, margin)
+    if spot is None:
+        return False
+    log.debug("clearing %s from under the box: %s -> %s", obj, np.round(centre, 3), np.round(spot, 3))
+    for attempt in range(2):
+        held = yield from grasp(ctx, obj, 0.002 if attempt == 0 else 0.006)
+        if held:
+            break
+        yield from M.open_gripper(ctx)
+    else:
+        return False
+    eef = ctx.eef_pos()
+    goal = eef.copy()
+    goal[:2] += spot - centre
+    yield from M.lift(ctx, eef[2] + 0.02, gripper=M.GRIP_CLOSE, tol=0.008, max_steps=10)
+    yield from M.move_to(ctx, [goal[0], goal[1], eef[2] + 0.02], gripper=M.GRIP_CLOSE, tol=0.008,
+                         max_steps=25, max_speed=0.8)
+    yield from M.move_to(ctx, [goal[0], goal[1], eef[2] + 0.004], gripper=M.GRIP_CLOSE, tol=0.006,
+                         max_steps=8, max_speed=0.5)
+    # a half-open hand already lets go of it; rising does not need the fingers at rest
+    yield from M.open_gripper(ctx, min_steps=3, max_steps=6)
+    p = ctx.eef_pos()
+    yield from M.move_to(ctx, [p[0], p[1], p[2] + 0.05], gripper=M.GRIP_OPEN, tol=0.02, max_steps=10)
+    return True

@@ -70,7 +70,7 @@ def plan(ctx: ExpertContext, goals: list[list[str]] | None = None) -> Iterator[n
             pass
         if name in ("in", "on") and len(args) == 2:
             # precondition: a target region inside a closed drawer/door -> open it first
-            yield from ensure_accessible(ctx, args[1], name)
+            yield from ensure_accessible(ctx, args[1], name, obj=args[0])
         yield from handler(ctx, *args)
     # let released objects settle before the caller evaluates success
     yield from M.hold(ctx, 5, gripper=M.GRIP_OPEN)

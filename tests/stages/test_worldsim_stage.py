@@ -1,0 +1,45 @@
+"""train_worldsim on the tiny task: manifest inputs, checkpoint, fidelity report, resume, errors."""
+import json
+
+import pytest
+
+from stages.train_worldsim.run import run as train_worldsim
+from worldenv_core.manifest import Manifest
+from worldenv_core.models.checkpoint import load_model
+from worldenv_core.stage import ConfigError, compose_config
+
+pytestmark = [pytest.mark.sim, pytest.mark.slow]
+SMALL = ["ae.steps=20", "flow.steps=20", "ae.batch_size=4", "flow.batch_size=4", "holdout_every=2", "log_every=5",
+         "checkpoint_every=10", "worldsim.ae_widths=[8,16]", "worldsim.width=16", "worldsim.map_channels=4",
+         "fidelity.horizons=[8,16]", "fidelity.starts_per_episode=1", "fidelity.videos=1", "worldsim.sampling_steps=2"]
+
+
+def cfg(exp, *overrides):
+    return compose_config("train_worldsim", ["+task=tiny", "scale=tiny", f"experiment_dir={exp}", *SMALL, *overrides])
+
+
+def test_train_worldsim_without_policy_rollouts_names_the_missing_step(demo_experiment):
+    with pytest.raises(ConfigError, match="source=policy.*expert_only=true"):
+        train_worldsim(cfg(demo_experiment))
+
+
+def test_train_worldsim_records_checkpoint_fidelity_and_resumes(demo_experiment):
+    exp = demo_experiment
+    metrics = train_worldsim(cfg(exp, "expert_only=true"))
+    m = Manifest(exp)
+    rec = m.latest("train_worldsim", task="tiny", data="expert")
+    assert rec.inputs == [m.latest("collect", task="tiny", source="expert").id]
+    files = {p.name: p for p in m.resolve(rec)}
+    assert {"model.safetensors", "config.json", "fidelity.json", "fidelity.md", "losses.png"} <= set(files)
+    assert any(name.startswith("real_vs_imagined") for name in files)
+    report = json.loads(files["fidelity.json"].read_text())
+    assert set(report["fidelity"]) == {"8", "16"} and report["fidelity"]["8"]["n"] == 1
+    for key in ("model_psnr", "copy_psnr", "model_ssim", "copy_ssim"):
+        assert 0 < report["fidelity"]["8"][key] < 100
+    assert report["kinematics_1step"]["pos_mm_median"] < 5  # fitted on one episode, checked on the other
+    model, config = load_model(files["model.safetensors"], expect={"image_size": 64, "chunk": 8, "kind": "worldsim"})
+    assert model.sampling_steps == 2 and set(config["meta"]["cameras"]) == {"0"}
+    assert metrics["held_out"] == 1 and metrics["episodes"] == 1
+
+    again = train_worldsim(cfg(exp, "expert_only=true"))  # same config: resumes at the end, trains nothing
+    assert again["train_wall_s"] < 5
