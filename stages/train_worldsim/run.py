@@ -73,14 +73,13 @@ def task_cameras(cfg: DictConfig, task_ids: list[int]) -> dict[int, PinholeCamer
     return out
 
 
-def _maps(proprio: torch.Tensor, task_ids, cameras: dict[int, PinholeCamera]) -> torch.Tensor:
+def _maps(proprio: torch.Tensor, task_ids, cameras: dict[int, PinholeCamera], size: int) -> torch.Tensor:
     """Action maps for a batch whose items may come from tasks with different cameras."""
-    out = torch.empty(*proprio.shape[:2], 3, cameras[next(iter(cameras))].image_size,
-                      cameras[next(iter(cameras))].image_size)
+    out = torch.empty(*proprio.shape[:2], 3, size, size)
     task_ids = torch.as_tensor(task_ids)
     for tid in task_ids.unique().tolist():
         sel = task_ids == tid
-        out[sel] = draw_action_maps(proprio[sel].float(), cameras[tid])
+        out[sel] = draw_action_maps(proprio[sel].float(), cameras[tid], size=size)
     return out
 
 
@@ -148,7 +147,7 @@ def run(cfg: DictConfig) -> dict:
                 b = next(flow_batches)
                 memory = b["memory"].to(device) / model.latent_scale
                 memory = memory + cfg.flow.memory_noise * torch.randn_like(memory)
-                maps = _maps(b["proprio"], b["task_id"], cameras).to(device)
+                maps = _maps(b["proprio"], b["task_id"], cameras, model.map_size).to(device)
                 loss = model.flow_loss(memory, maps, b["target"].to(device) / model.latent_scale,
                                        b["actions"].to(device), b["valid"].to(device))
                 opt_flow.zero_grad(set_to_none=True)

@@ -63,7 +63,7 @@ def test_tiny_world_model_overfits_real_frames_and_samples_with_1_and_4_steps(re
     model.latent_scale.fill_(float(latents.std()))
     data = LatentChunks([latents], [ep], model.memory_offsets, model.chunk)
     batch = {k: torch.stack([data[i][k] for i in range(0, len(data), 4)]) for k in ("memory", "target", "proprio", "actions", "valid")}
-    maps = draw_action_maps(batch["proprio"], cam)
+    maps = draw_action_maps(batch["proprio"], cam, size=model.map_size)
     opt = torch.optim.Adam(model.velocity.parameters(), lr=2e-3)
     g = torch.Generator().manual_seed(0)
     losses = []

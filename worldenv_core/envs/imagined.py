@@ -23,7 +23,7 @@ class ChunkResult:
     proprio: torch.Tensor  # (B, K, 7) s_{t+1..t+K}
     latents: torch.Tensor  # (B, K, C, h, w)
     action_maps: torch.Tensor  # (B, K, 3, H, W)
-    frames: torch.Tensor | None = None  # (B, K, 3, H, W) uint8 when decoded
+    frames: torch.Tensor | None = None  # (B, K, 3, H, W) uint8 ("all") or (B, 1, 3, H, W) ("last")
 
 
 class ImaginedSimulator:
@@ -54,8 +54,11 @@ class ImaginedSimulator:
         return self.latents[:, self.model.memory_indices(t)]
 
     @torch.no_grad()
-    def step(self, actions: torch.Tensor, decode: bool = True, generator: torch.Generator | None = None) -> ChunkResult:
-        """actions (B, K, 7) in the simulator's units -> the next K imagined frames."""
+    def step(self, actions: torch.Tensor, decode: str = "all", generator: torch.Generator | None = None) -> ChunkResult:
+        """actions (B, K, 7) in the simulator's units -> the next K imagined frames. `decode`:
+        "all" frames to pixels, only the "last" (what a chunked policy looks at next), or "none"."""
+        if decode not in ("all", "last", "none"):
+            raise ValueError(f"decode must be 'all', 'last' or 'none', got {decode!r}")
         if self.latents is None:
             raise RuntimeError("call reset() before step()")
         b, k = actions.shape[:2]
@@ -63,11 +66,12 @@ class ImaginedSimulator:
             raise ValueError(f"actions must be ({self.latents.shape[0]}, {self.model.chunk}, 7), got {tuple(actions.shape)}")
         actions = actions.to(self.device)
         states, self.carry = self.kinematics.rollout(self.proprio, actions.double(), self.carry)
-        maps = draw_action_maps(states.float(), self.camera)
+        maps = draw_action_maps(states.float(), self.camera, size=self.model.map_size)
         z = self.model.predict_latents(self.memory(), maps, actions.float(), steps=self.steps, generator=generator)
         self.latents = torch.cat([self.latents, z], dim=1)
         self.proprio = states[:, -1]
-        frames = (self.model.decode(z) * 255).round().to(torch.uint8) if decode else None
+        kept = {"all": z, "last": z[:, -1:], "none": None}[decode]
+        frames = (self.model.decode(kept) * 255).round().to(torch.uint8) if kept is not None else None
         return ChunkResult(proprio=states.float(), latents=z, action_maps=maps, frames=frames)
 
 

@@ -31,12 +31,15 @@ def _segment_distance(grid: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> t
     return (grid - (a + t[..., None] * ab)).norm(dim=-1)
 
 
-def draw_action_maps(states: torch.Tensor, camera: PinholeCamera, radius_px: tuple[float, float] | None = None,
-                     line_px: float | None = None) -> torch.Tensor:
+def draw_action_maps(states: torch.Tensor, camera: PinholeCamera, size: int | None = None,
+                     radius_px: tuple[float, float] | None = None, line_px: float | None = None) -> torch.Tensor:
     """states (..., 7) = (eef pos, eef axis-angle, gripper opening in [0, 1]) ->
-    maps (..., 3, H, W) in [0, 1]. Radii default to a fraction of the image size so that maps
-    look alike at every resolution: a disc of 2 %..5 % of the width, lines of 0.8 %."""
-    size = camera.image_size
+    maps (..., 3, S, S) in [0, 1], S = `size` (default: the camera's resolution; a world model
+    that only patch-embeds its maps can take them smaller, and drawing costs S^2). Radii default
+    to a fraction of the size so that maps look alike at every resolution: a disc of 2 %..5 % of
+    the width, lines of 0.8 %."""
+    size = int(size or camera.image_size)
+    zoom = size / camera.image_size
     r_closed, r_open = radius_px or (0.02 * size, 0.05 * size)
     half_line = 0.5 * (line_px or max(1.0, 0.008 * size))
     lead = states.shape[:-1]
@@ -44,6 +47,7 @@ def draw_action_maps(states: torch.Tensor, camera: PinholeCamera, radius_px: tup
     pos, rot = s[:, :3], axis_angle_to_matrix(s[:, 3:6])
     ends = pos[:, None, :] + AXIS_LENGTH_M * rot.transpose(1, 2)  # (N, 3 axes, 3): rows = axis directions
     (centre, _), (tips, _) = camera.project(pos), camera.project(ends)
+    centre, tips = (centre + 0.5) * zoom - 0.5, (tips + 0.5) * zoom - 0.5  # pixel centres at the new size
 
     ys, xs = torch.meshgrid(torch.arange(size, dtype=torch.float32), torch.arange(size, dtype=torch.float32),
                             indexing="ij")

@@ -46,18 +46,21 @@ class ResBlock(nn.Module):
 
 
 class Autoencoder(nn.Module):
-    """uint8 images (N, 3, H, W) <-> latents (N, C, H/f, W/f). A 2x2 patchify stem keeps the
-    full-resolution work to one cheap layer; the decoder ends in a pixel shuffle for the same reason."""
+    """uint8 images (N, 3, H, W) <-> latents (N, C, H/f, W/f). A `patch` x `patch` patchify stem
+    keeps full-resolution work to one cheap layer, and the decoder ends in a pixel shuffle for the
+    same reason: decoding is what imagined rollouts pay per kept frame."""
 
-    def __init__(self, image_size: int, latent_size: int = 16, latent_channels: int = 4, widths=(32, 64, 96)):
+    def __init__(self, image_size: int, latent_size: int = 16, latent_channels: int = 4, widths=(32, 64),
+                 patch: int = 4):
         super().__init__()
         factor = image_size // latent_size
-        if factor * latent_size != image_size or factor < 2 or factor & (factor - 1):
-            raise ValueError(f"image_size {image_size} must be latent_size {latent_size} times a power of two >= 2")
-        n_down = int(math.log2(factor)) - 1  # the stem already halves
+        if factor * latent_size != image_size or factor < patch or factor % patch or (factor // patch) & (factor // patch - 1):
+            raise ValueError(f"image_size {image_size} must be latent_size {latent_size} times patch {patch} "
+                             "times a power of two")
+        n_down = int(math.log2(factor // patch))
         widths = list(widths)[: n_down + 1] + [widths[-1]] * max(0, n_down + 1 - len(widths))
         self.image_size, self.latent_size, self.latent_channels = image_size, latent_size, latent_channels
-        enc = [nn.Conv2d(3, widths[0], 2, stride=2)]
+        enc = [nn.Conv2d(3, widths[0], patch, stride=patch)]
         for i in range(n_down):
             enc += [ResBlock(widths[i], widths[i]), nn.Conv2d(widths[i], widths[i + 1], 3, stride=2, padding=1)]
         enc += [ResBlock(widths[-1], widths[-1]), nn.GroupNorm(_groups(widths[-1]), widths[-1]), nn.SiLU(),
@@ -67,8 +70,8 @@ class Autoencoder(nn.Module):
         for i in reversed(range(n_down)):
             dec += [nn.Upsample(scale_factor=2, mode="nearest"), nn.Conv2d(widths[i + 1], widths[i], 3, padding=1),
                     ResBlock(widths[i], widths[i])]
-        dec += [nn.GroupNorm(_groups(widths[0]), widths[0]), nn.SiLU(), nn.Conv2d(widths[0], 3 * 4, 3, padding=1),
-                nn.PixelShuffle(2)]
+        dec += [nn.GroupNorm(_groups(widths[0]), widths[0]), nn.SiLU(),
+                nn.Conv2d(widths[0], 3 * patch * patch, 3, padding=1), nn.PixelShuffle(patch)]
         self.decoder = nn.Sequential(*dec)
 
     def encode(self, images: torch.Tensor) -> torch.Tensor:
@@ -93,10 +96,10 @@ class VelocityNet(nn.Module):
     patch-embedded action map (channels), FiLM-conditioned on flow time, chunk index and
     (optionally) the raw action."""
 
-    def __init__(self, latent_channels: int, memory: int, image_size: int, latent_size: int, chunk: int,
+    def __init__(self, latent_channels: int, memory: int, map_size: int, latent_size: int, chunk: int,
                  width: int = 64, map_channels: int = 16, action_dim: int = 7, use_raw_actions: bool = False):
         super().__init__()
-        patch = image_size // latent_size
+        patch = map_size // latent_size
         self.map_embed = nn.Conv2d(3, map_channels, patch, stride=patch)  # action map -> latent grid
         emb = 4 * width
         self.time_mlp = nn.Sequential(nn.Linear(width, emb), nn.SiLU(), nn.Linear(emb, emb))
@@ -141,17 +144,21 @@ class WorldSimulator(nn.Module):
     """
 
     def __init__(self, image_size: int, chunk: int = 8, memory_offsets=(0, 4, 8, 16), latent_size: int = 16,
-                 latent_channels: int = 4, ae_widths=(32, 64, 96), width: int = 64, map_channels: int = 16,
-                 use_raw_actions: bool = False, sampling_steps: int = 4, action_dim: int = 7):
+                 latent_channels: int = 4, ae_widths=(32, 64), ae_patch: int = 4, width: int = 48,
+                 map_channels: int = 16, map_size: int | None = None, use_raw_actions: bool = False,
+                 sampling_steps: int = 4, action_dim: int = 7):
         super().__init__()
+        self.map_size = int(map_size or image_size // 2)  # action maps are drawn at this resolution
+        if self.map_size % latent_size:
+            raise ValueError(f"map_size {self.map_size} must be a multiple of latent_size {latent_size}")
         if sampling_steps < 1:
             raise ValueError(f"sampling_steps must be >= 1, got {sampling_steps}")
         self.image_size, self.chunk, self.sampling_steps = image_size, chunk, sampling_steps
         self.memory_offsets = tuple(int(o) for o in memory_offsets)
         if self.memory_offsets[0] != 0 or any(o < 0 for o in self.memory_offsets):
             raise ValueError(f"memory_offsets must start with 0 (the current frame), got {memory_offsets}")
-        self.autoencoder = Autoencoder(image_size, latent_size, latent_channels, ae_widths)
-        self.velocity = VelocityNet(latent_channels, len(self.memory_offsets), image_size, latent_size, chunk,
+        self.autoencoder = Autoencoder(image_size, latent_size, latent_channels, ae_widths, ae_patch)
+        self.velocity = VelocityNet(latent_channels, len(self.memory_offsets), self.map_size, latent_size, chunk,
                                     width, map_channels, action_dim, use_raw_actions)
         # latents are rescaled to unit variance and deltas to unit variance (set from data)
         self.register_buffer("latent_scale", torch.ones(()))
@@ -176,7 +183,7 @@ class WorldSimulator(nn.Module):
         return x.reshape(*lead, *x.shape[1:])
 
     def _condition(self, memory: torch.Tensor, action_maps: torch.Tensor, actions: torch.Tensor | None):
-        """memory (B, M, C, h, w), action_maps (B, K, 3, H, W) -> per-frame conditioning for B*K items."""
+        """memory (B, M, C, h, w), action_maps (B, K, 3, S, S) -> per-frame conditioning for B*K items."""
         b, k = action_maps.shape[:2]
         mem = memory.flatten(1, 2)[:, None].expand(-1, k, -1, -1, -1).flatten(0, 1)
         index = torch.arange(k, device=memory.device).repeat(b)
@@ -204,7 +211,7 @@ class WorldSimulator(nn.Module):
     @torch.no_grad()
     def predict_latents(self, memory: torch.Tensor, action_maps: torch.Tensor, actions: torch.Tensor | None = None,
                         steps: int | None = None, generator: torch.Generator | None = None) -> torch.Tensor:
-        """memory (B, M, C, h, w) scaled latents, action_maps (B, K, 3, H, W) in [0, 1] ->
+        """memory (B, M, C, h, w) scaled latents, action_maps (B, K, 3, S, S) in [0, 1] (S = map_size) ->
         next K latents (B, K, C, h, w), by `steps` Euler steps of the flow (default: the config's)."""
         steps = int(steps or self.sampling_steps)
         if steps < 1:
