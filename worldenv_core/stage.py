@@ -90,3 +90,13 @@ def compose_config(stage: str, overrides=()) -> DictConfig:
 
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         return compose(stage, overrides=list(overrides))
+
+
+def start(cfg: DictConfig, validate) -> Manifest:
+    """Every stage's prologue: logging, `validate(cfg)` (before anything is written), the
+    experiment directory and its manifest, seeds."""
+    setup_logging()
+    validate(cfg)
+    manifest = experiment(cfg)
+    seed_everything(cfg.seed)
+    return manifest

@@ -21,8 +21,7 @@ from worldenv_core.envs.collection import (
 from worldenv_core.envs.tasks import get_task, num_tasks, resolve_task_ids
 from worldenv_core.manifest import StageRun, config_hash
 from worldenv_core.parallel import run_jobs
-from worldenv_core.stage import ConfigError, experiment, positive_int, require_task, resolved, seed_everything, setup_logging
-
+from worldenv_core.stage import ConfigError, positive_int, require_task, resolved, start
 log = logging.getLogger("worldenv.collect")
 SOURCES = ("expert", "policy", "lerobot")
 INIT_MODES = ("sampled", "benchmark")
@@ -75,11 +74,8 @@ def episode_dir(cfg: DictConfig) -> Path:
 
 
 def run(cfg: DictConfig) -> dict:
-    setup_logging()
-    validate(cfg)
+    manifest = start(cfg, validate)
     task = cfg.task
-    manifest = experiment(cfg)
-    seed_everything(cfg.seed)
     task_ids = resolve_task_ids(task.suite, task.task_ids)
     run_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else manifest.root
     tags = {"task": task.name, "scale": cfg.scale.name, "source": cfg.source}

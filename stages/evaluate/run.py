@@ -16,7 +16,7 @@ from worldenv_core.envs.collection import PolicyEvalJob, evaluate_policy_task
 from worldenv_core.envs.tasks import resolve_task_ids
 from worldenv_core.manifest import StageRun
 from worldenv_core.parallel import run_jobs
-from worldenv_core.stage import ConfigError, experiment, positive_int, require_task, resolved, seed_everything, setup_logging
+from worldenv_core.stage import ConfigError, positive_int, require_task, resolved, start
 from worldenv_core.viz import montage_video
 
 log = logging.getLogger("worldenv.evaluate")
@@ -37,11 +37,8 @@ def validate(cfg: DictConfig) -> None:
 
 
 def run(cfg: DictConfig) -> dict:
-    setup_logging()
-    validate(cfg)
+    manifest = start(cfg, validate)
     task = cfg.task
-    manifest = experiment(cfg)
-    seed_everything(cfg.seed)
     run_dir = (Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized()
                else manifest.root / "evaluate" / cfg.termination)
     run_dir.mkdir(parents=True, exist_ok=True)

@@ -23,8 +23,7 @@ from worldenv_core.manifest import StageRun, config_hash
 from worldenv_core.models.checkpoint import save_model
 from worldenv_core.models.text import InstructionEncoder
 from worldenv_core.rl.laplace import laplace_nll
-from worldenv_core.stage import (ConfigError, experiment, positive_int, require_task, resolved,
-                                 seed_everything, setup_logging)
+from worldenv_core.stage import ConfigError, positive_int, require_task, resolved, start
 from worldenv_core.training import Checkpoints, batches, pick_device, plot_history, random_shift
 
 log = logging.getLogger("worldenv.train_policy")
@@ -60,11 +59,8 @@ def _batch_inputs(model, batch, encoder, device, shift: int = 0):
 
 
 def run(cfg: DictConfig) -> dict:
-    setup_logging()
-    validate(cfg)
+    manifest = start(cfg, validate)
     task = cfg.task
-    manifest = experiment(cfg)
-    seed_everything(cfg.seed)
     device = pick_device(cfg.device)
     tags = {"task": task.name, "scale": cfg.scale.name}
     config = resolved(cfg)

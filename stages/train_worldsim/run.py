@@ -30,7 +30,7 @@ from worldenv_core.kinematics.next_state import NextStateModel, state_errors
 from worldenv_core.manifest import ArtefactError, StageRun, config_hash
 from worldenv_core.models.checkpoint import save_model
 from worldenv_core.models.worldsim_data import LatentChunks, encode_episode_frames
-from worldenv_core.stage import ConfigError, experiment, positive_int, require_task, resolved, seed_everything, setup_logging
+from worldenv_core.stage import ConfigError, positive_int, require_task, resolved, start
 from worldenv_core.training import Checkpoints, batches, pick_device, plot_history
 from worldenv_core.viz import montage_video
 
@@ -84,11 +84,8 @@ def _maps(proprio: torch.Tensor, task_ids, cameras: dict[int, PinholeCamera], si
 
 
 def run(cfg: DictConfig) -> dict:
-    setup_logging()
-    validate(cfg)
+    manifest = start(cfg, validate)
     task = cfg.task
-    manifest = experiment(cfg)
-    seed_everything(cfg.seed)
     device = pick_device(cfg.device)
     config = resolved(cfg)
     work = Path(cfg.experiment_dir) / "train_worldsim" / config_hash(config)
