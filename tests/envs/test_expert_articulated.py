@@ -53,6 +53,7 @@ def test_articulated_primitive_solves_goal_task(task_id, which):
 def test_articulated_rules_without_sim_state_changes():
     """Static queries on a real scene: thresholds, container detection, dish detection."""
     from worldenv_core.envs.expert import articulated as A
+    from worldenv_core.envs.expert import push as P
     from worldenv_core.envs.expert.context import ExpertContext
 
     env = LiberoEnv("libero_goal", 3, cameras=(), render=False)  # open the top drawer, bowl inside
@@ -67,8 +68,8 @@ def test_articulated_rules_without_sim_state_changes():
         assert sign < 0 and -0.16 <= q_open < -0.14  # inside LIBERO's open range
         q_on, s_on = A._target_q(ctx, "flat_stove_1", "turnon")
         assert s_on > 0 and q_on >= 0.5
-        assert A.is_dish(ctx, "plate_1") and not A.is_dish(ctx, "akita_black_bowl_1")
-        assert A.is_table_region(ctx, "main_table_stove_front_region")
+        assert P.is_dish(ctx, "plate_1") and not P.is_dish(ctx, "akita_black_bowl_1")
+        assert P.is_table_region(ctx, "main_table_stove_front_region")
         # the opened top drawer will overhang the bowl: the planner moves it aside first
         from worldenv_core.envs.expert.pick_place import _boxes_dist
 

@@ -1,4 +1,4 @@
-"""Articulated-object primitives for the scripted expert: drawers, doors, knobs, pushes.
+"""Articulated-object primitives for the scripted expert: drawers, doors, knobs.
 
 All primitives are generators yielding 7-D OSC_POSE actions (see :mod:`.motion`).  They read
 the articulation straight from MuJoCo (joint type, axis, anchor, current qpos, the collision
@@ -17,8 +17,7 @@ geoms of the moving body) and the open/close/turn-on thresholds from the LIBERO 
   top edge on the face that trails the motion, following the door's arc.
 * **knobs** (``flat_stove`` button: hinge about z, found by having turn-on ranges): top-down
   grasp of the knob's top fin with the fingers across it, then turn the wrist.
-* **push** (a plate onto a table region): closed-loop planar pushing with the closed
-  gripper; a dish is driven from inside its rim.
+Pushing a dish onto a table region lives in :mod:`.push`.
 
 Success thresholds come from the LIBERO object (e.g. drawer open iff q < -0.14, stove on iff
 q >= 0.5); each primitive drives its joint a margin past the threshold and stops when it is
@@ -28,12 +27,10 @@ Public API::
 
     open_region(ctx, region)   close_region(ctx, region)      # region or object name
     turn_on(ctx, obj)          turn_off(ctx, obj)
-    push_to(ctx, obj, region)
     articulated_container(ctx, region, relation) -> what to open before 'in' (or None)
     ensure_accessible(ctx, region, relation, obj) # planner precondition (+ make room for obj)
     opened_boxes(ctx, drawer) -> where the drawer's geoms will be once open
-    on_or_push(pick_place_on)                     # 'on' handler: dish -> table region = push
-    is_open(ctx, name) / is_closed(ctx, name) / is_dish(ctx, obj) / is_table_region(ctx, name)
+    is_open(ctx, name) / is_closed(ctx, name)
 """
 from __future__ import annotations
 
@@ -42,7 +39,7 @@ from typing import Iterator
 
 import numpy as np
 
-from .context import ExpertContext, top_down_mat
+from .context import ExpertContext
 from .motion import GRIP_CLOSE, GRIP_OPEN, close_gripper, move_to, pose_action, target_mat_for
 
 Action = np.ndarray
@@ -636,92 +633,9 @@ def _fingertip_depth(ctx: ExpertContext) -> float:
     return float(ctx.eef_pos()[2] - min(lows))
 
 
-def push_to(ctx: ExpertContext, obj: str, region: str, max_steps: int = 160) -> Iterator[Action]:
-    """Push ``obj`` across the table until its centre lies inside ``region`` (a table site).
-
-    Rule for the contact: a dish (flat, wide, hollow: a plate) is pushed from *inside* its rim
-    (the fingers sit in the dish and drive the leading rim, which keeps the dish captured and
-    keeps the hand over the dish, clear of nearby fixtures); anything else from behind.
-    """
-    lo, hi = ctx.aabb(obj)
-    _, half, _ = ctx.footprint(obj)
-    radius = float(np.max(half))
-    height = float(hi[2] - lo[2])
-    dish = height < 0.035 and radius > 0.05
-    tip = _fingertip_depth(ctx)
-    if dish:
-        # floor of the dish = top of the collision geom nearest the centre
-        c = ctx.pos(obj)
-        gs = ctx.geom_ids(obj)
-        gc = min(gs, key=lambda g: float(np.linalg.norm(ctx.data.geom_xpos[g][:2] - c[:2])))
-        floor = float(ctx.data.geom_xpos[gc][2]) + _geom_extent_along(ctx, gc, np.array([0, 0, 1.0]))
-        push_z = floor + tip - 0.006  # press lightly on the floor so the finger cannot ride up
-        dists = [float(np.linalg.norm(ctx.data.geom_xpos[g][:2] - c[:2])) for g in gs if g != gc]
-        rim_r = float(np.median(dists)) if dists else radius
-        if _DEBUG:
-            print("dish floor", round(floor, 4), "tip", round(tip, 4), "push_z", round(push_z, 4), "lo", lo.round(3), "hi", hi.round(3))
-        lead = -0.01  # finger starts just behind the centre, then drives the leading rim
-    else:
-        push_z = float(lo[2]) + min(0.5 * height, 0.03) + tip
-        lead = radius + 0.025
-        rim_r = radius
-
-    def goal_xy() -> np.ndarray:
-        return ctx.pos(region)[:2]
-
-    def obj_xy() -> np.ndarray:
-        return ctx.pos(obj)[:2]
-
-    def dir_xy() -> np.ndarray:
-        d = goal_xy() - obj_xy()
-        return d / (np.linalg.norm(d) + 1e-9)
-
-    def contact(offset: float) -> np.ndarray:
-        p = np.zeros(3)
-        p[:2] = obj_xy() - dir_xy() * offset
-        p[2] = push_z
-        return p
-
-    size = np.abs(ctx.site_size(region)[:2])
-    tol = float(min(np.min(size) * 0.4, 0.02))
-    d0 = dir_xy()
-    yaw = _yaw_for_fingers_along(ctx, np.array([-d0[1], d0[0], 0.0]))
-    yield from _set_gripper(ctx, GRIP_CLOSE, 2)
-    start = contact(lead)
-    yield from move_to(ctx, start + np.array([0, 0, 0.10]), yaw=yaw, gripper=GRIP_CLOSE, tol=0.015, max_steps=60)
-    yield from move_to(ctx, start, yaw=yaw, gripper=GRIP_CLOSE, tol=0.008, max_steps=40, max_speed=0.6)
-    R = target_mat_for(ctx, yaw)
-    for k in range(max_steps):
-        err = goal_xy() - obj_xy()
-        dist = float(np.linalg.norm(err))
-        if dist < tol:
-            break
-        d = dir_xy()
-        e = ctx.eef_pos()
-        rel = e[:2] - obj_xy()
-        lateral = rel - np.dot(rel, d) * d
-        lost = (np.linalg.norm(rel) > rim_r or e[2] > push_z + 0.012) if dish else (
-            np.linalg.norm(lateral) > 0.6 * radius or np.dot(rel, d) > 0)
-        if lost:
-            # lost the object: re-approach from above
-            yield from move_to(ctx, e + np.array([0, 0, 0.08]), gripper=GRIP_CLOSE, tol=0.02, max_steps=20)
-            b = contact(lead)
-            yield from move_to(ctx, b + np.array([0, 0, 0.08]), gripper=GRIP_CLOSE, tol=0.015, max_steps=30)
-            yield from move_to(ctx, b, gripper=GRIP_CLOSE, tol=0.01, max_steps=30)
-            continue
-        # target: advance along d from the current pusher position, steer laterally onto the line
-        tgt = e.copy()
-        tgt[:2] = e[:2] - lateral * 0.5 + d * min(0.02, dist + 0.005)
-        tgt[2] = push_z
-        yield pose_action(ctx, tgt, gripper=GRIP_CLOSE, target_mat=R, max_speed=0.45)
-    yield from move_to(ctx, ctx.eef_pos() + np.array([0, 0, 0.08]), gripper=GRIP_CLOSE, tol=0.02, max_steps=20)
-    return bool(np.linalg.norm(goal_xy() - obj_xy()) < tol)
-
-
 __all__ = [
-    "open_region", "close_region", "turn_on", "turn_off", "push_to",
-    "articulated_container", "ensure_accessible", "on_or_push", "is_open", "is_closed",
-    "is_dish", "is_table_region", "opened_boxes", "JointView",
+    "open_region", "close_region", "turn_on", "turn_off",
+    "articulated_container", "ensure_accessible", "is_open", "is_closed", "opened_boxes", "JointView",
 ]
 
 
@@ -771,40 +685,3 @@ def ensure_accessible(ctx: ExpertContext, region: str, relation: str = "in",
             yield from clear_of_boxes(ctx, obj, boxes)
         yield from open_region(ctx, cont)
     return True
-
-
-def is_dish(ctx: ExpertContext, obj: str) -> bool:
-    """Flat, wide object (a plate): low enough to push, awkward to grasp."""
-    try:
-        lo, hi = ctx.aabb(obj)
-        _, half, _ = ctx.footprint(obj)
-    except Exception:  # noqa: BLE001
-        return False
-    return float(hi[2] - lo[2]) < 0.035 and float(np.max(half)) > 0.05
-
-
-def is_table_region(ctx: ExpertContext, name: str) -> bool:
-    """A region site drawn on a table (``main_table_*_region``)."""
-    env = ctx.sim_env
-    if name not in env.object_sites_dict:
-        return False
-    parent = env.object_sites_dict[name].parent_name
-    if parent is None:  # LIBERO's table regions are TargetZones with no parent object
-        return True
-    try:
-        return "table" in ctx.category(parent) or "table" in parent
-    except Exception:  # noqa: BLE001
-        return "table" in str(parent)
-
-
-def on_or_push(pick_place_on):
-    """Wrap the pick-and-place 'on' handler with the push rule: a dish onto a table region
-    is pushed there (:func:`push_to`); anything else goes to ``pick_place_on``."""
-
-    def handler(ctx: ExpertContext, obj: str, target: str) -> Iterator[Action]:
-        if is_table_region(ctx, target) and is_dish(ctx, obj):
-            return (yield from push_to(ctx, obj, target))
-        return (yield from pick_place_on(ctx, obj, target))
-
-    handler.__name__ = "on_or_push"
-    return handler

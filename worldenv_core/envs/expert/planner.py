@@ -26,8 +26,9 @@ PREDICATE_HANDLERS: dict[str, Handler] = {
 
 # Articulated skills (open/close/turnon/turnoff, push) come from .articulated.
 from .articulated import (  # noqa: E402
-    close_region, ensure_accessible, on_or_push, open_region, turn_off, turn_on,
+    close_region, ensure_accessible, open_region, turn_off, turn_on,
 )
+from .push import on_or_push  # noqa: E402
 
 PREDICATE_HANDLERS.update({
     "open": open_region,
