@@ -15,13 +15,11 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
-import numpy as np
 import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from worldenv_core.data.dataset import EpisodeDataset
 from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.envs.imagined import ImaginedSimulator, open_loop_fidelity
 from worldenv_core.kinematics.action_map import draw_action_maps
@@ -119,15 +117,17 @@ def run(cfg: DictConfig) -> dict:
         n_ae, total = cfg.ae.steps, cfg.ae.steps + cfg.flow.steps
         log.info("training on %d episodes (%d held out) for %d + %d steps on %s; work dir %s",
                  len(episodes), len(held_eps), n_ae, cfg.flow.steps, device, work)
-        frames = EpisodeDataset(train_paths, cameras=[cfg.camera], mode="frame")
-        ae_batches = batches(frames, cfg.ae.batch_size, cfg.seed, start_step=min(step, n_ae))
+        # every training frame, decoded once (the episodes are in memory already)
+        frames = torch.cat([torch.from_numpy(ep.images[cfg.camera]) for ep in episodes]) if step < n_ae else None
         chunks = flow_batches = None
         t0, running = time.perf_counter(), defaultdict(list)
         bar = tqdm(range(step, total), initial=step, total=total, desc="train_worldsim", dynamic_ncols=True)
         for step in bar:
             model.train()
             if step < n_ae:
-                x = next(ae_batches)["images"][cfg.camera].to(device)
+                pick = torch.randint(len(frames), (cfg.ae.batch_size,),
+                                     generator=torch.Generator().manual_seed(cfg.seed * 1_000_003 + step))
+                x = frames[pick].permute(0, 3, 1, 2).contiguous().to(device)  # seeded by step: resumes exactly
                 target = x.float() / 255
                 recon = model.autoencoder.decode(model.autoencoder.encode(x))
                 loss = (recon - target).abs().mean() + (recon - target).pow(2).mean()
@@ -137,6 +137,7 @@ def run(cfg: DictConfig) -> dict:
                 running["ae"].append(loss.item())
             else:
                 if chunks is None:  # entering (or resuming in) phase 2: encode every frame once
+                    frames = None
                     chunks = _latent_chunks(model, episodes, device, fresh=step == n_ae)
                     if step == n_ae:  # the EMA starts from the trained autoencoder
                         ema.load_state_dict(model.state_dict())
