@@ -18,6 +18,7 @@ from worldenv_core.envs.collection import (
     ExpertEpisodeJob, ExpertEvalJob, PolicyEpisodeJob, collect_expert_episode, collect_policy_episode,
     evaluate_expert_task, summarise_expert_eval,
 )
+from worldenv_core.data.mcap_io import read_info
 from worldenv_core.envs.tasks import get_task, num_tasks, resolve_task_ids
 from worldenv_core.manifest import StageRun, config_hash
 from worldenv_core.parallel import run_jobs
@@ -148,8 +149,9 @@ def _collect(cfg: DictConfig, task_ids: list[int], stage: StageRun) -> dict:
         "render_s": round(sum(r.get("render_s", 0.0) for r in kept), 2),
         "episode_dir": str(out_dir),
     }
-    if cfg.source == "policy":
-        metrics["success_rate"] = sum(r["success"] for r in kept) / len(kept) if kept else None
+    if cfg.source == "policy":  # over every episode of the collection, resumed ones included
+        done = [read_info(r["path"]).meta.success for r in results if r["status"] in ("kept", "exists")]
+        metrics["success_rate"] = sum(done) / len(done) if done else None
     log.info("collection: %s", json.dumps(metrics))
     return metrics
 
