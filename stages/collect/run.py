@@ -42,6 +42,7 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"init_states must be one of {', '.join(INIT_MODES)}, got {cfg.init_states!r}")
     positive_int(cfg, "episodes_per_task", allow_zero=True)
     positive_int(cfg, "max_attempts")
+    positive_int(cfg, "post_success_steps", allow_zero=True)
     positive_int(cfg, "expert_eval.init_states", allow_zero=True)
     if cfg.expert_eval.init_states > 50:
         raise ConfigError(f"expert_eval.init_states is at most 50 (the benchmark has 50 per task), got {cfg.expert_eval.init_states}")
@@ -65,6 +66,8 @@ def episode_dir(cfg: DictConfig) -> Path:
     defining = {"source": cfg.source, "suite": task.suite, "seed": cfg.seed, "init_states": cfg.init_states,
                 "max_attempts": cfg.max_attempts, "cameras": list(task.cameras), "image_size": task.image_size,
                 "max_steps": task.max_steps}
+    if cfg.post_success_steps:  # (only when set, so earlier collections keep their folders)
+        defining["post_success_steps"] = cfg.post_success_steps
     if cfg.source == "expert":  # episodes of a changed expert are other episodes: never mix them
         defining["expert_code"] = expert_code_hash()
     if cfg.source == "policy":
@@ -112,7 +115,8 @@ def _collect(cfg: DictConfig, task_ids: list[int], stage: StageRun) -> dict:
     task = cfg.task
     out_dir = episode_dir(cfg)
     common = dict(suite=task.suite, seed=cfg.seed, init_mode=cfg.init_states, cameras=tuple(task.cameras),
-                  image_size=task.image_size, max_steps=task.max_steps, fps=float(task.control_freq))
+                  image_size=task.image_size, max_steps=task.max_steps, fps=float(task.control_freq),
+                  post_success_steps=cfg.post_success_steps)
     path = lambda t, k: str(out_dir / f"task{t:02d}" / f"{cfg.source}_{k:04d}.mcap")  # noqa: E731
     if cfg.source == "policy":
         policy_path = resolve_policy(cfg, stage)

@@ -15,12 +15,15 @@ from stages.collect.run import resolve_policy
 from worldenv_core.envs.collection import PolicyEvalJob, evaluate_policy_task
 from worldenv_core.envs.tasks import resolve_task_ids
 from worldenv_core.manifest import StageRun
+from worldenv_core.models.checkpoint import read_config
+from worldenv_core.models.reflector import check_eta
 from worldenv_core.parallel import run_jobs
+from worldenv_core.rl.termination import StopOutcome, termination_metrics
 from worldenv_core.stage import ConfigError, positive_int, require_task, resolved, start
 from worldenv_core.viz import montage_video
 
 log = logging.getLogger("worldenv.evaluate")
-TERMINATIONS = ("oracle", "fixed")
+TERMINATIONS = ("oracle", "fixed", "reflector")
 JOB_SIZE = 10  # init states per job: small enough to spread a task over workers
 
 
@@ -34,6 +37,26 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"init_states is at most 50 (the benchmark has 50 per task), got {cfg.init_states}")
     if cfg.workers is not None:
         positive_int(cfg, "workers")
+    try:
+        check_eta(cfg.eta)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+
+
+def resolve_reflector(cfg: DictConfig, stage: StageRun) -> str:
+    """A checkpoint folder given directly, a train_reflector record id, or the latest of this task/scale."""
+    ref = cfg.reflector
+    if ref and Path(str(ref)).is_dir():
+        path = str(Path(str(ref)).resolve())
+    else:
+        record = (stage.manifest.get(ref) if ref else
+                  stage.manifest.latest("train_reflector", task=cfg.task.name, scale=cfg.scale.name))
+        path = str(stage.use(record, kind="checkpoint")[0].parent)
+    camera = read_config(path)["meta"].get("camera")
+    if camera not in cfg.task.cameras:
+        raise ConfigError(f"reflector {path} watches camera {camera!r}, which task {cfg.task.name} does not render "
+                          f"({list(cfg.task.cameras)})")
+    return path
 
 
 def run(cfg: DictConfig) -> dict:
@@ -45,11 +68,13 @@ def run(cfg: DictConfig) -> dict:
     tags = {"task": task.name, "scale": cfg.scale.name, "termination": cfg.termination}
     with StageRun(manifest, "evaluate", tags, resolved(cfg)) as stage:
         policy_path = resolve_policy(cfg, stage)
+        reflector_path = resolve_reflector(cfg, stage) if cfg.termination == "reflector" else None
         inits = list(range(cfg.init_states))
         jobs = [PolicyEvalJob(policy_path=policy_path, suite=task.suite, task_id=t, init_ids=tuple(inits[i:i + JOB_SIZE]),
                               cameras=tuple(task.cameras), image_size=task.image_size, chunk=task.chunk,
                               max_steps=task.max_steps, termination=cfg.termination,
-                              video_ids=tuple(inits[:cfg.videos_per_task]))
+                              video_ids=tuple(inits[:cfg.videos_per_task]), reflector_path=reflector_path,
+                              eta=float(cfg.eta))
                 for t in resolve_task_ids(task.suite, task.task_ids) for i in range(0, len(inits), JOB_SIZE)]
         rows, videos = [], {}
         for out in run_jobs(evaluate_policy_task, jobs, workers=cfg.workers, launcher=cfg.launcher,
@@ -61,6 +86,9 @@ def run(cfg: DictConfig) -> dict:
         summary = summarise(rows)
         summary.update(policy=policy_path, termination=cfg.termination, init_states=cfg.init_states,
                        report_dir=str(run_dir))
+        if reflector_path:
+            summary.update(reflector=reflector_path, eta=float(cfg.eta), reflector_termination=termination_metrics(
+                [StopOutcome(r["first_success_step"], r["stop_step"]) for r in rows if r["error"] is None]))
         (run_dir / "episodes.json").write_text(json.dumps(rows, indent=1))
         (run_dir / "results.json").write_text(json.dumps(summary, indent=2))
         (run_dir / "results.md").write_text(markdown(summary, task.suite))
@@ -96,4 +124,10 @@ def markdown(summary: dict, suite: str) -> str:
     lines += [f"| {r['task_id']} | {r['task']} | {100 * r['success_rate']:.0f}% | {100 * r['ever_succeeded_rate']:.0f}% "
               f"| {r['mean_steps']:.0f} |" for r in summary["per_task"]]
     lines.append(f"| all | | **{100 * summary['success_rate']:.1f}%** | {100 * summary['ever_succeeded_rate']:.1f}% | |")
+    if "reflector_termination" in summary:
+        t = summary["reflector_termination"]
+        lines += ["", f"Reflector stops (eta = {summary['eta']}): {t['correct_stops']} at or after the oracle's success "
+                  f"(median {t['timing_error_median']:.0f} steps late), {t['false_stops']} false stops "
+                  f"({t['false_stop_before_success_rate']:.2f} of the successes stopped early), {t['missed_successes']} "
+                  f"successes never stopped; termination F1 {t['f1']:.3f}."]
     return "\n".join(lines) + "\n"

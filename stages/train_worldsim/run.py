@@ -25,7 +25,8 @@ from worldenv_core.envs.imagined import ImaginedSimulator, open_loop_fidelity
 from worldenv_core.kinematics.action_map import draw_action_maps
 from worldenv_core.kinematics.camera import PinholeCamera
 from worldenv_core.kinematics.next_state import NextStateModel, state_errors
-from worldenv_core.manifest import ArtefactError, StageRun, config_hash
+from worldenv_core.data.selection import MissingEpisodesError, collected_episodes, episode_key, holdout_split
+from worldenv_core.manifest import StageRun, config_hash
 from worldenv_core.models.checkpoint import save_model
 from worldenv_core.models.worldsim_data import LatentChunks, encode_episode_frames
 from worldenv_core.stage import ConfigError, positive_int, require_task, resolved, start
@@ -44,19 +45,6 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"camera {cfg.camera!r} is not one of the task's cameras {list(cfg.task.cameras)}")
     if not 0.0 <= cfg.flow.ema < 1.0:
         raise ConfigError(f"flow.ema must be in [0, 1), got {cfg.flow.ema}")
-
-
-def input_episodes(cfg: DictConfig, manifest, stage: StageRun) -> list[Path]:
-    tags = {"task": cfg.task.name, "scale": cfg.scale.name}
-    paths = stage.use(manifest.latest("collect", source="expert", **tags), kind="episodes")
-    if not cfg.expert_only:
-        try:
-            record = manifest.latest("collect", source="policy", **tags)
-        except ArtefactError as e:
-            raise ConfigError(f"{e}; collect policy rollouts first (`python -m stages.collect +task={cfg.task.name} "
-                              "source=policy`) or train on expert data only with expert_only=true") from None
-        paths += stage.use(record, kind="episodes")
-    return sorted(paths)
 
 
 def task_cameras(cfg: DictConfig, task_ids: list[int]) -> dict[int, PinholeCamera]:
@@ -89,13 +77,15 @@ def run(cfg: DictConfig) -> dict:
     work = Path(cfg.experiment_dir) / "train_worldsim" / config_hash(config)
     tags = {"task": task.name, "scale": cfg.scale.name, "data": "expert" if cfg.expert_only else "expert+policy"}
     with StageRun(manifest, "train_worldsim", tags, config) as stage:
-        paths = input_episodes(cfg, manifest, stage)
-        held = set(paths[cfg.holdout_every - 1::cfg.holdout_every]) or {paths[-1]}
-        train_paths = [p for p in paths if p not in held]
+        try:
+            paths = collected_episodes(manifest, stage, task.name, cfg.scale.name, cfg.expert_only)
+        except MissingEpisodesError as e:
+            raise ConfigError(str(e)) from None
+        train_paths, held = holdout_split(paths, cfg.holdout_every)
         if not train_paths:
             raise ConfigError(f"only {len(paths)} episodes: none left for training after holding out {len(held)}")
         episodes = [read_episode(p, cameras=[cfg.camera]) for p in train_paths]
-        held_eps = [read_episode(p, cameras=[cfg.camera]) for p in sorted(held)]
+        held_eps = [read_episode(p, cameras=[cfg.camera]) for p in held]
         cameras = task_cameras(cfg, sorted({ep.meta.task_id for ep in episodes + held_eps}))
         kinematics = NextStateModel.fit(episodes)
         log.info("kinematics fitted on %d episodes: %s", len(episodes), kinematics)
@@ -113,7 +103,8 @@ def run(cfg: DictConfig) -> dict:
         meta = {"kind": "worldsim", "task": task.name, "suite": task.suite, "camera": cfg.camera,
                 "image_size": task.image_size, "chunk": task.chunk, "action_dim": task.action_dim,
                 "kinematics": kinematics.to_dict(), "cameras": {str(t): c.to_dict() for t, c in cameras.items()},
-                "episodes": len(episodes), "expert_only": bool(cfg.expert_only)}
+                "episodes": len(episodes), "expert_only": bool(cfg.expert_only),
+                "held_out": [episode_key(p) for p in held]}
         n_ae, total = cfg.ae.steps, cfg.ae.steps + cfg.flow.steps
         log.info("training on %d episodes (%d held out) for %d + %d steps on %s; work dir %s",
                  len(episodes), len(held_eps), n_ae, cfg.flow.steps, device, work)

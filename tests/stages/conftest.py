@@ -1,4 +1,5 @@
-"""Stage tests share one real expert collection of the tiny task (collecting costs ~1 min)."""
+"""Stage tests share one real expert collection of the tiny task (collecting costs ~1 min): 2 demos
+that go on for 8 steps after the oracle's success (the reflector's positive frames)."""
 import shutil
 
 import pytest
@@ -11,7 +12,7 @@ def _tiny_demos(tmp_path_factory):
 
     exp = tmp_path_factory.mktemp("demos")
     collect(compose_config("collect", ["+task=tiny", "scale=tiny", f"experiment_dir={exp}", f"data_dir={exp / 'data'}",
-                                       "episodes_per_task=2", "workers=1", "progress=false", "lerobot_export=false"]))
+                                       "episodes_per_task=2", "post_success_steps=8", "workers=1", "progress=false", "lerobot_export=false"]))
     return exp
 
 

@@ -30,6 +30,7 @@ class ExpertEpisodeJob:
     max_steps: int
     max_attempts: int
     fps: float
+    post_success_steps: int = 0  # keep acting this many steps after success (frames of the task done)
 
 
 def collect_expert_episode(job: ExpertEpisodeJob) -> dict:
@@ -46,7 +47,7 @@ def collect_expert_episode(job: ExpertEpisodeJob) -> dict:
     for attempt in range(job.max_attempts):
         seed = attempt_seed(job.seed, job.suite, job.task_id, job.index, attempt)
         init = None if job.init_mode == "sampled" else job.index % 50
-        traj = expert_attempt(env, init, seed, job.max_steps)
+        traj = expert_attempt(env, init, seed, job.max_steps, post_success_steps=job.post_success_steps)
         steps_tried += traj.length
         if traj.error:
             errors.append(traj.error)
@@ -140,6 +141,7 @@ class PolicyEpisodeJob:
     noise_scale: float
     stop_on_success: bool
     fps: float
+    post_success_steps: int = 0
 
 
 def collect_policy_episode(job: PolicyEpisodeJob) -> dict:
@@ -155,7 +157,8 @@ def collect_policy_episode(job: PolicyEpisodeJob) -> dict:
     seed = attempt_seed(job.seed, job.suite, job.task_id, job.index, 0)
     runner.generator.manual_seed(seed)  # the Laplace noise of this episode depends on the job alone
     init = None if job.init_mode == "sampled" else job.index % 50
-    traj = policy_episode(env, runner, init, seed, job.max_steps, stop_on_success=job.stop_on_success)
+    traj = policy_episode(env, runner, init, seed, job.max_steps, stop_on_success=job.stop_on_success,
+                          post_success_steps=job.post_success_steps)
     if not traj.frames or traj.length == 0:
         return {**out, "status": "failed", "errors": [traj.error], "seconds": time.perf_counter() - t0}
     episode = to_episode(env, traj, init_state_index=-1 if init is None else init, seed=seed, source="policy",
@@ -177,8 +180,23 @@ class PolicyEvalJob:
     image_size: int
     chunk: int
     max_steps: int
-    termination: str  # "oracle": stop at the first success; "fixed": run max_steps, judge the last frame
+    termination: str  # "oracle": stop at the first success; "fixed": run max_steps, judge the last frame;
+    #                   "reflector": stop when the reflector's R > eta, judge the frame it stopped at
     video_ids: tuple[int, ...] = ()
+    reflector_path: str | None = None
+    eta: float = 0.5
+
+
+_REFLECTORS: dict = {}
+
+
+def cached_reflector(path: str, image_size: int):
+    from worldenv_core.models.reflector import load_reflector
+
+    if path not in _REFLECTORS:
+        _REFLECTORS.clear()
+        _REFLECTORS[path] = load_reflector(path, expect={"image_size": int(image_size)})[0]
+    return _REFLECTORS[path]
 
 
 def evaluate_policy_task(job: PolicyEvalJob) -> dict:
@@ -187,15 +205,24 @@ def evaluate_policy_task(job: PolicyEvalJob) -> dict:
 
     env = cached_env(job.suite, job.task_id, job.cameras, job.image_size, render=True)
     runner = cached_runner(job.policy_path, False, 1.0, policy_contract(job.cameras, job.image_size, job.chunk))
+    reflector = cached_reflector(job.reflector_path, job.image_size) if job.termination == "reflector" else None
     rows, videos = [], {}
     for i in job.init_ids:
         t0 = time.perf_counter()
-        traj = policy_episode(env, runner, i, 0, job.max_steps, stop_on_success=job.termination == "oracle")
+        stop = None
+        if reflector is not None:
+            from worldenv_core.models.reflector import ReflectorStop
+
+            stop = ReflectorStop(reflector, job.eta, runner.encoder([env.instruction])[0])
+        traj = policy_episode(env, runner, i, 0, job.max_steps, stop_on_success=job.termination == "oracle",
+                              stop_when=stop)
         flags = [f.success for f in traj.frames]
+        stopped = stop is not None and bool(stop.scores) and stop.scores[-1] > job.eta
         rows.append({"suite": job.suite, "task_id": job.task_id, "task": env.task.name, "init_state": i,
                      "success": bool(traj.error is None and flags and flags[-1]),
                      "ever_succeeded": bool(any(flags)), "steps": traj.length,
                      "first_success_step": flags.index(True) if any(flags) else None,
+                     "stop_step": traj.length if stopped else None,
                      "error": traj.error, "seconds": time.perf_counter() - t0})
         if i in job.video_ids and traj.frames:
             states = np.stack([f.sim_state for f in traj.frames])

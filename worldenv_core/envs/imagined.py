@@ -39,6 +39,22 @@ class ImaginedSimulator:
         self.proprio: torch.Tensor | None = None
         self.carry = None
 
+    @classmethod
+    def from_checkpoint(cls, path, task_id: int, sampling_steps: int | None = None, device="cpu",
+                        expect: dict | None = None) -> "ImaginedSimulator":
+        """A trained world simulator (a train_worldsim checkpoint folder) set up for one task:
+        its kinematic model and that task's camera travel in the checkpoint's metadata."""
+        from worldenv_core.models.checkpoint import CheckpointError, load_model, read_config
+
+        meta = read_config(path)["meta"]
+        if meta.get("kind") != "worldsim":
+            raise CheckpointError(f"{path} holds a {meta.get('kind')!r} checkpoint, not a world simulator")
+        if str(task_id) not in meta["cameras"]:
+            raise CheckpointError(f"world simulator {path} was trained on tasks {sorted(meta['cameras'])}, not task {task_id}")
+        model, _ = load_model(path, expect=expect)
+        return cls(model, NextStateModel(**meta["kinematics"]), PinholeCamera.from_dict(meta["cameras"][str(task_id)]),
+                   sampling_steps=sampling_steps, device=device)
+
     @torch.no_grad()
     def reset(self, frames: torch.Tensor, proprio: torch.Tensor, prev_proprio: torch.Tensor | None = None) -> None:
         """frames (B, T0, 3, H, W) uint8: the real frames so far (T0 >= 1, the last is current);
@@ -116,6 +132,26 @@ def open_loop_fidelity(sim: ImaginedSimulator, episodes, horizons=(8, 16, 32, 64
     summary = {h: {key: (sum(v) / len(v) if v else float("nan")) for key, v in r.items()} | {"n": len(r["model_psnr"])}
                for h, r in rows.items()}
     return {"horizons": summary, "videos": videos}
+
+
+@torch.no_grad()
+def replay_from_start(sim: ImaginedSimulator, episodes, camera: str = "agentview",
+                      generator: torch.Generator | None = None) -> list[torch.Tensor]:
+    """Imagine each episode from its first real frame, driven by its recorded actions alone
+    (open loop, batched over the episodes). Returns per episode (T+1, 3, H, W) uint8: the real
+    first frame, then T imagined frames."""
+    k = sim.model.chunk
+    n_chunks = max(-(-ep.length // k) for ep in episodes)
+    acts = torch.zeros(len(episodes), n_chunks * k, 7)
+    for i, ep in enumerate(episodes):
+        a = torch.from_numpy(ep.actions).float()
+        acts[i, : len(a)] = a
+        acts[i, len(a):] = a[-1]  # a finished episode holds its last command while the others go on
+    first = torch.stack([torch.from_numpy(ep.images[camera][:1]).permute(0, 3, 1, 2) for ep in episodes])
+    sim.reset(first, torch.stack([torch.from_numpy(ep.proprio[0]) for ep in episodes]).double())
+    chunks = [sim.step(acts[:, c * k:(c + 1) * k], generator=generator).frames for c in range(n_chunks)]
+    frames = torch.cat([first, *chunks], dim=1)
+    return [frames[i, : ep.length + 1] for i, ep in enumerate(episodes)]
 
 
 def _histories(imgs: torch.Tensor, starts: list[int], history: int) -> torch.Tensor:

@@ -67,15 +67,22 @@ def rollout(
     max_steps: int,
     stop_on_success: bool = True,
     finished: Callable[[], bool] = lambda: False,
+    post_success_steps: int = 0,
 ) -> Trajectory:
-    """Step `act(frame, t)` until success, `finished()`, or `max_steps`. `act` may also return
+    """Step `act(frame, t)` until success (and `post_success_steps` more: frames showing the task
+    done, which the reflector learns from), `finished()`, or `max_steps`. `act` may also return
     (action, extras) so a policy can log its mu/beta per step. A simulator exception ends the
     episode as failed with the error recorded; it never propagates to kill a collection run."""
     traj = Trajectory(frames=[first], actions=[])
     frame = first
+    success_at = None
     try:
         for t in range(max_steps):
-            if stop_on_success and frame.success or finished():
+            if success_at is None and frame.success:
+                success_at = t
+            if success_at is not None and stop_on_success and t - success_at >= post_success_steps:
+                break
+            if (success_at is None or not stop_on_success) and finished():
                 break
             out = act(frame, t)
             action, extras = out if isinstance(out, tuple) else (out, {})
@@ -92,7 +99,7 @@ def rollout(
 
 
 def expert_attempt(env: LiberoEnv, init_state, seed: int, max_steps: int,
-                   rng: np.random.Generator | None = None) -> Trajectory:
+                   rng: np.random.Generator | None = None, post_success_steps: int = 0) -> Trajectory:
     """One scripted-expert attempt from a benchmark init state (index) or a seeded placement (None).
     `seed` fixes the scene; `rng` (default: seeded from `seed`) the expert's own jitter."""
     from worldenv_core.envs.expert import ScriptedExpert
@@ -102,7 +109,8 @@ def expert_attempt(env: LiberoEnv, init_state, seed: int, max_steps: int,
         expert = ScriptedExpert(env.raw, rng if rng is not None else np.random.default_rng(seed))
     except Exception as e:  # noqa: BLE001
         return Trajectory(frames=[], actions=[], error=f"reset failed: {type(e).__name__}: {e}")
-    return rollout(env, lambda frame, t: expert.act(), first, max_steps, finished=lambda: expert.finished)
+    return rollout(env, lambda frame, t: expert.act(), first, max_steps, finished=lambda: expert.finished,
+                   post_success_steps=post_success_steps)
 
 
 def to_episode(env: LiberoEnv, traj: Trajectory, **meta):
@@ -136,20 +144,36 @@ class Timer:
 
 
 def policy_episode(env: LiberoEnv, runner, init_state, seed: int, max_steps: int,
-                   stop_on_success: bool = True) -> Trajectory:
+                   stop_on_success: bool = True, post_success_steps: int = 0, stop_when=None) -> Trajectory:
     """Run a policy (a `PolicyRunner`) chunk by chunk, rendering the cameras it sees only at chunk
-    boundaries, and logging its mu/beta for every executed action."""
+    boundaries, and logging its mu/beta for every executed action.
+
+    stop_when: optional callable (camera -> (H, W, 3) image) -> bool asked at every chunk boundary
+    (a reflector's dynamic termination, see `ReflectorStop`); its `cameras` are rendered too."""
     try:
         first = env.reset(init_state=init_state, seed=seed)
     except Exception as e:  # noqa: BLE001
         return Trajectory(frames=[], actions=[], error=f"reset failed: {type(e).__name__}: {e}")
     queue: list = []
+    cameras = list(dict.fromkeys([*runner.cameras, *(stop_when.cameras if stop_when else [])]))
+    rendered: dict = {}  # this boundary's images, shared by the stop check and the policy
+
+    def boundary_images():
+        if "images" not in rendered:
+            rendered["images"] = env.render(cameras)
+        return rendered["images"]
 
     def act(frame: Frame, t: int):
         if not queue:
-            actions, mu, beta = runner.act_chunk(env.render(runner.cameras), frame.proprio, env.instruction)
+            images = boundary_images()
+            rendered.clear()
+            actions, mu, beta = runner.act_chunk(images, frame.proprio, env.instruction)
             queue.extend(zip(actions, mu, beta))
         a, m, b = queue.pop(0)
         return a, {"mu": m, "beta": b}
 
-    return rollout(env, act, first, max_steps, stop_on_success=stop_on_success)
+    def finished() -> bool:
+        return stop_when is not None and not queue and bool(stop_when(boundary_images()))
+
+    return rollout(env, act, first, max_steps, stop_on_success=stop_on_success, finished=finished,
+                   post_success_steps=post_success_steps)

@@ -1,0 +1,14 @@
+"""python -m stages.train_reflector +task=<suite> [eta=0.5] [expert_only=true]"""
+import hydra
+from omegaconf import DictConfig
+
+from stages.train_reflector.run import run
+
+
+@hydra.main(config_path="../../conf", config_name="train_reflector", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    run(cfg)
+
+
+if __name__ == "__main__":
+    main()

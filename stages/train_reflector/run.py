@@ -1,0 +1,276 @@
+"""Stage `train_reflector`: the instant reflector (paper sec. 4.2, appendix B.3).
+
+Trains R(o_{1:t}, g) with binary cross-entropy on the oracle's per-step labels y_t, from the
+expert demos and the policy's rollouts in the manifest, half positive and half negative prefixes
+per batch. Then measures it on held-out real episodes and on the world simulator's open-loop
+replays of the same episodes: per-step accuracy/F1/AUROC at eta, and termination (correct stops,
+false stops, missed successes, timing error), with R(t) plots.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import torch
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from worldenv_core.data.mcap_io import read_episode
+from worldenv_core.data.selection import MissingEpisodesError, collected_episodes, episode_key, holdout_split
+from worldenv_core.manifest import ArtefactError, StageRun, config_hash
+from worldenv_core.metrics import binary_metrics
+from worldenv_core.models.checkpoint import save_model
+from worldenv_core.models.reflector import check_eta, score_prefixes
+from worldenv_core.models.reflector_data import PrefixSampler
+from worldenv_core.models.text import InstructionEncoder
+from worldenv_core.rl.termination import StopOutcome, check_steps, first_stop, first_success, success_labels, termination_metrics
+from worldenv_core.stage import ConfigError, positive_int, require_task, resolved, start
+from worldenv_core.training import Checkpoints, pick_device, plot_history, random_shift
+
+log = logging.getLogger("worldenv.train_reflector")
+ETA_SWEEP = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
+
+
+def validate(cfg: DictConfig) -> None:
+    require_task(cfg)
+    for key in ("train.steps", "train.batch_size", "train.log_every", "train.checkpoint_every", "holdout_every",
+                "frame_stride", "reflector.max_frames"):
+        positive_int(cfg, key)
+    try:
+        check_eta(cfg.eta)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    if cfg.camera not in cfg.task.cameras:
+        raise ConfigError(f"camera {cfg.camera!r} is not one of the task's cameras {list(cfg.task.cameras)}")
+    if not 0.0 <= cfg.train.hard_negative_fraction <= 1.0:
+        raise ConfigError(f"train.hard_negative_fraction must be in [0, 1], got {cfg.train.hard_negative_fraction}")
+    if cfg.train.batch_size < 2:
+        raise ConfigError("train.batch_size must be at least 2 (half positives, half negatives)")
+
+
+def run(cfg: DictConfig) -> dict:
+    manifest = start(cfg, validate)
+    task = cfg.task
+    device = pick_device(cfg.device)
+    config = resolved(cfg)
+    work = Path(cfg.experiment_dir) / "train_reflector" / config_hash(config)
+    tags = {"task": task.name, "scale": cfg.scale.name, "data": "expert" if cfg.expert_only else "expert+policy"}
+    with StageRun(manifest, "train_reflector", tags, config) as stage:
+        try:
+            paths = collected_episodes(manifest, stage, task.name, cfg.scale.name, cfg.expert_only)
+        except MissingEpisodesError as e:
+            raise ConfigError(str(e)) from None
+        train_paths, held = holdout_split(paths, cfg.holdout_every)
+        episodes = [read_episode(p, cameras=[cfg.camera]) for p in train_paths]
+        held_eps = [read_episode(p, cameras=[cfg.camera]) for p in held]
+        try:
+            sampler = PrefixSampler(episodes, cfg.camera, cfg.frame_stride, cfg.reflector.max_frames,
+                                    cfg.train.hard_negative_fraction, cfg.train.hard_window)
+        except ValueError as e:
+            raise ConfigError(f"{e}; collect more episodes (policy rollouts give failures)") from None
+        model_cfg = OmegaConf.to_container(cfg.reflector, resolve=True)
+        model = instantiate(model_cfg, _convert_="all").to(device)
+        opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=cfg.train.lr,
+                                weight_decay=cfg.train.weight_decay)
+        ckpts = Checkpoints(work)
+        step, history = ckpts.restore(model, {"reflector": opt})
+        meta = {"kind": "reflector", "task": task.name, "suite": task.suite, "camera": cfg.camera,
+                "image_size": task.image_size, "frame_stride": cfg.frame_stride, "eta": float(cfg.eta),
+                "episodes": len(episodes), "held_out": [episode_key(p) for p in held], **sampler.counts()}
+        encoder = InstructionEncoder()
+        total = cfg.train.steps
+        log.info("training on %d episodes (%s; %d held out) for %d steps on %s; work dir %s", len(episodes),
+                 sampler.counts(), len(held_eps), total, device, work)
+        t0, running = time.perf_counter(), defaultdict(list)
+        bar = tqdm(range(step, total), initial=step, total=total, desc="train_reflector", dynamic_ncols=True)
+        for step in bar:
+            model.train()
+            b = sampler.batch(cfg.train.batch_size, seed=cfg.seed * 1_000_003 + step)  # by step: resumes exactly
+            frames, mask = _augment(model, b["frames"], b["mask"], cfg.train.augment_shift,
+                                    torch.Generator().manual_seed(cfg.seed * 7_000_003 + step))
+            logits = model(frames.to(device), mask.to(device), encoder(b["instruction"]).to(device))
+            label = b["label"].to(device)
+            loss = torch.nn.functional.binary_cross_entropy_with_logits(logits, label)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+            opt.step()
+            running["bce"].append(loss.item())
+            running["batch_accuracy"].append(((logits > 0).float() == label).float().mean().item())
+            done = step + 1
+            if done % cfg.train.log_every == 0 or done == total:
+                entry = {"step": done, **{k: sum(v) / len(v) for k, v in running.items()}}
+                history.append(entry)
+                running.clear()
+                bar.set_postfix({k: f"{v:.3f}" for k, v in entry.items() if k != "step"})
+            if done % cfg.train.checkpoint_every == 0 or done == total:
+                ckpts.save(done, model, model_cfg, meta, {"reflector": opt}, history)
+        bar.close()
+        train_s = time.perf_counter() - t0
+        model = model.cpu().eval()
+        final = save_model(work / "reflector", model, model_cfg, {**meta, "step": total})
+        for f in sorted(final.iterdir()):
+            stage.add_output(f, kind="checkpoint")
+        stage.add_output(plot_history(history, work / "losses.png", f"train_reflector {task.name}"), kind="plot")
+
+        t1 = time.perf_counter()
+        videos = {"real": [torch.from_numpy(ep.images[cfg.camera]).permute(0, 3, 1, 2) for ep in held_eps]}
+        imagined_eps = held_eps
+        if cfg.imagined.enabled:
+            imagined = imagine_held_out(cfg, manifest, stage, held, held_eps)
+            if imagined is not None:
+                imagined_eps, videos["imagined"] = imagined
+        report = {"eta": float(cfg.eta), "held_out_episodes": len(held_eps)}
+        curves = {}
+        for kind, vids in videos.items():
+            eps = held_eps if kind == "real" else imagined_eps
+            report[kind], curves[kind] = evaluate_videos(model, encoder, eps, vids, cfg.frame_stride, cfg.eta)
+        report["eval_wall_s"] = round(time.perf_counter() - t1, 1)
+        write_report(report, curves, held_eps, imagined_eps, cfg, work)
+        for name in ("reflector_eval.json", "reflector_eval.md", "reflector_curves.png"):
+            stage.add_output(work / name, kind="report" if name.endswith(("json", "md")) else "plot")
+        stage.metrics.update({"episodes": len(episodes), "held_out": len(held_eps), "steps": total,
+                              "train_wall_s": round(train_s, 1), "device": str(device), **_headline(report)})
+        log.info("reflector saved to %s; metrics %s", final, json.dumps(stage.metrics))
+    return stage.metrics
+
+
+def _augment(model, frames: torch.Tensor, mask: torch.Tensor, shift: int, generator: torch.Generator):
+    """Resize the real frames to the model's input size first (the shift is then cheap), then shift
+    each by up to `shift` pixels of the original resolution."""
+    x = frames[mask].float() / 255.0
+    size = model.input_size or x.shape[-1]
+    if size != x.shape[-1]:
+        x = torch.nn.functional.interpolate(x, size=(size, size), mode="area")
+    pad = round(shift * size / frames.shape[-1])
+    out = torch.zeros(*mask.shape, *x.shape[1:])
+    out[mask] = random_shift(x, pad, generator) if pad else x
+    return out, mask
+
+
+def imagine_held_out(cfg, manifest, stage: StageRun, held: list[Path], held_eps):
+    """World-simulator replays of the held-out episodes the world model did not train on, or None
+    when the experiment has no world simulator yet."""
+    from worldenv_core.envs.imagined import ImaginedSimulator, replay_from_start
+    from worldenv_core.models.checkpoint import read_config
+
+    try:
+        record = manifest.latest("train_worldsim", task=cfg.task.name, scale=cfg.scale.name)
+    except ArtefactError:
+        log.warning("no train_worldsim record in %s: imagined evaluation skipped", cfg.experiment_dir)
+        return None
+    ckpt = stage.use(record, kind="checkpoint")[0].parent
+    unseen = read_config(ckpt)["meta"].get("held_out")
+    eps = [ep for p, ep in zip(held, held_eps) if unseen is None or episode_key(p) in set(unseen)]
+    if not eps:
+        log.warning("none of the %d held-out episodes is held out by world simulator %s (different split): "
+                    "imagined evaluation skipped", len(held_eps), ckpt)
+        return None
+    if unseen is None:
+        log.warning("world simulator %s does not list its held-out episodes: some imagined episodes may be ones it "
+                    "trained on", ckpt)
+    out = {}
+    g = torch.Generator().manual_seed(cfg.seed)
+    for tid in sorted({ep.meta.task_id for ep in eps}):
+        sim = ImaginedSimulator.from_checkpoint(ckpt, tid, cfg.imagined.sampling_steps,
+                                                expect={"image_size": cfg.task.image_size, "chunk": cfg.task.chunk})
+        group = [ep for ep in eps if ep.meta.task_id == tid]
+        for ep, frames in zip(group, replay_from_start(sim, group, camera=cfg.camera, generator=g)):
+            out[id(ep)] = frames
+    log.info("imagined %d held-out episodes with world simulator %s", len(eps), ckpt)
+    return eps, [out[id(ep)] for ep in eps]
+
+
+def evaluate_videos(model, encoder, episodes, videos, stride: int, eta: float) -> tuple[dict, list]:
+    """Score every video at its chunk boundaries (and last frame) against the real episode's
+    labels. Returns the report and the per-episode (steps, scores) curves."""
+    steps_all, scores_all, labels_all, curves = [], [], [], []
+    outcomes = defaultdict(list)  # source -> [StopOutcome]
+    per_eta = {e: [] for e in ETA_SWEEP}
+    for ep, video in zip(episodes, videos):
+        steps = check_steps(len(video), stride)
+        lang = encoder([ep.meta.instruction])[0]
+        scores = score_prefixes(model, video, lang, steps).numpy()
+        labels = success_labels(ep.success)[steps]
+        steps_all.append(steps), scores_all.append(scores), labels_all.append(labels)
+        curves.append((steps, scores))
+        ts = first_success(ep.success)
+        for source in ("all", ep.meta.source):
+            outcomes[source].append(StopOutcome(ts, first_stop(steps, scores, eta)))
+        for e in ETA_SWEEP:
+            per_eta[e].append(StopOutcome(ts, first_stop(steps, scores, e)))
+    scores, labels = np.concatenate(scores_all), np.concatenate(labels_all)
+    report = {"per_step": binary_metrics(scores, labels, eta),
+              "termination": {src: termination_metrics(o) for src, o in outcomes.items()},
+              "eta_sweep": {str(e): {"per_step_f1": binary_metrics(scores, labels, e)["f1"],
+                                     "termination_f1": termination_metrics(o)["f1"]} for e, o in per_eta.items()}}
+    return report, curves
+
+
+def _headline(report: dict) -> dict:
+    out = {}
+    for kind in ("real", "imagined"):
+        if kind in report:
+            r = report[kind]
+            out.update({f"{kind}_step_f1": r["per_step"]["f1"], f"{kind}_step_auroc": r["per_step"]["auroc"],
+                        f"{kind}_step_accuracy": r["per_step"]["accuracy"],
+                        f"{kind}_termination_f1": r["termination"]["all"]["f1"]})
+    return out
+
+
+def write_report(report: dict, curves: dict, held_eps, imagined_eps, cfg, work: Path) -> None:
+    (work / "reflector_eval.json").write_text(json.dumps(report, indent=2))
+    kinds = [k for k in ("real", "imagined") if k in report]
+    md = [f"Reflector on {report['held_out_episodes']} held-out episodes (eta = {report['eta']}; scored every "
+          f"{cfg.frame_stride} frames and at the last frame)", "",
+          "| video | step accuracy | step F1 | step AUROC | term. precision | term. recall | term. F1 | "
+          "false stop before success | false stop in failure | missed success | timing error (median steps) | episodes |",
+          "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for kind in kinds:
+        for src, t in report[kind]["termination"].items():
+            p = report[kind]["per_step"] if src == "all" else None
+            md.append(f"| {kind} ({src}) | " + (f"{p['accuracy']:.3f} | {p['f1']:.3f} | {p['auroc']:.3f}" if p else "| |")
+                      + f" | {t['precision']:.3f} | {t['recall']:.3f} | {t['f1']:.3f} | {t['false_stop_before_success_rate']:.2f} | "
+                      f"{t['false_stop_in_failure_rate']:.2f} | {t['missed_success_rate']:.2f} | {t['timing_error_median']:.1f} | "
+                      f"{t['episodes']} |")
+    md += ["", "Termination F1 by eta: | eta | " + " | ".join(kinds) + " |", "|---|" + "---|" * len(kinds)]
+    md += [f"| {e} | " + " | ".join(f"{report[k]['eta_sweep'][str(e)]['termination_f1']:.3f}" for k in kinds) + " |"
+           for e in ETA_SWEEP]
+    (work / "reflector_eval.md").write_text("\n".join(md) + "\n")
+    print("\n".join(md))
+    _plot_curves(curves, held_eps, imagined_eps, cfg, work / "reflector_curves.png")
+
+
+def _plot_curves(curves: dict, held_eps, imagined_eps, cfg, path: Path) -> None:
+    """R(t) of a few held-out episodes, real (solid) and imagined (dashed), with eta and t_success."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = min(cfg.plots, len(held_eps))
+    fig, axes = plt.subplots(1, max(1, n), figsize=(3.2 * max(1, n), 2.8), squeeze=False)
+    imagined_idx = {id(ep): i for i, ep in enumerate(imagined_eps)}
+    for ax, i in zip(axes[0], range(n)):
+        ep = held_eps[i]
+        ax.plot(*curves["real"][i], label="real")
+        if "imagined" in curves and id(ep) in imagined_idx:
+            ax.plot(*curves["imagined"][imagined_idx[id(ep)]], "--", label="imagined")
+        ax.axhline(cfg.eta, color="gray", lw=0.8)
+        ts = first_success(ep.success)
+        if ts is not None:
+            ax.axvline(ts, color="green", lw=0.8)
+        ax.set_ylim(-0.05, 1.05)
+        ax.set_title(f"task {ep.meta.task_id} {ep.meta.source} {'ok' if ts is not None else 'fail'}", fontsize=8)
+        ax.set_xlabel("step")
+    axes[0][0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path.with_suffix(".tmp.png"))
+    plt.close(fig)
+    path.with_suffix(".tmp.png").replace(path)

@@ -1,0 +1,149 @@
+"""The instant reflector: sub-sampling, learning a synthetic success task, incremental scoring,
+checkpoints, eta validation."""
+import numpy as np
+import pytest
+import torch
+from hydra.utils import instantiate
+
+from worldenv_core.data.episode import Episode, EpisodeMeta
+from worldenv_core.models.checkpoint import CheckpointError, save_model
+from worldenv_core.models.reflector import (IncrementalScorer, ReflectorStop, check_eta, load_reflector,
+                                            score_prefixes, subsample_indices)
+from worldenv_core.models.reflector_data import PrefixSampler, prefix_frames
+
+
+def small_config(max_frames=8, input_size=None):
+    return {"_target_": "worldenv_core.models.reflector.Reflector", "camera": "agentview", "input_size": input_size,
+            "max_frames": max_frames, "d_model": 32, "layers": 1, "heads": 2, "instruction_dim": 16,
+            "frame_encoder": {"_target_": "worldenv_core.models.backbones.SmallConvBackbone", "cameras": ["agentview"],
+                              "cond_dim": 16, "widths": [8, 16], "keypoints": 4}}
+
+
+def test_subsample_keeps_first_and_last_and_spreads_uniformly():
+    assert subsample_indices(5, 8).tolist() == [0, 1, 2, 3, 4]
+    idx = subsample_indices(100, 8)
+    assert len(idx) == 8 and idx[0] == 0 and idx[-1] == 99 and (idx.diff() > 0).all()
+    assert prefix_frames(20, 8, 32).tolist() == [0, 4, 12, 20]  # what a chunked rollout has at frame 20
+    assert prefix_frames(16, 8, 32).tolist() == [0, 8, 16]
+    assert len(prefix_frames(300, 1, 32)) == 32
+
+
+def synthetic_episode(rng, size=16, length=24, colour=0, succeed_at=None):
+    """A noisy video where a square of `colour` (the instruction: 'red' or 'blue') appears at
+    `succeed_at`; a square of the other colour is a distractor that never counts."""
+    imgs = rng.integers(0, 60, (length + 1, size, size, 3), dtype=np.uint8)
+    distractor_at = int(rng.integers(2, length))
+    imgs[distractor_at:, 2:6, 2:6, 1 - colour] = 255
+    success = np.zeros(length + 1, dtype=bool)
+    if succeed_at is not None:
+        imgs[succeed_at:, 9:14, 9:14, colour] = 255
+        success[succeed_at:] = True
+    meta = EpisodeMeta(suite="libero_object", task_id=colour, task_name="t", instruction=["red", "blue"][colour],
+                       init_state_index=-1, seed=0, source="policy", success=success[-1], cameras=["agentview"])
+    z = np.zeros((length + 1, 7))
+    return Episode(meta=meta, images={"agentview": imgs}, proprio=z, joint_pos=z, sim_state=np.zeros((length + 1, 0)),
+                   success=success, actions=np.zeros((length, 7)))
+
+
+def episodes(seed, n):
+    rng = np.random.default_rng(seed)
+    return [synthetic_episode(rng, colour=i % 2, succeed_at=int(rng.integers(6, 24)) if i % 3 else None)
+            for i in range(n)]
+
+
+LANG = {"red": torch.nn.functional.one_hot(torch.tensor(0), 16).float(),
+        "blue": torch.nn.functional.one_hot(torch.tensor(1), 16).float()}
+
+
+def test_a_tiny_reflector_learns_a_synthetic_instruction_dependent_success_task():
+    torch.manual_seed(0)
+    model = instantiate(small_config())
+    sampler = PrefixSampler(episodes(0, 24), "agentview", stride=4, max_frames=8, hard_negative_fraction=0.25,
+                            hard_window=4)
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    for step in range(150):
+        b = sampler.batch(16, seed=step)
+        lang = torch.stack([LANG[s] for s in b["instruction"]])
+        loss = torch.nn.functional.binary_cross_entropy_with_logits(model(b["frames"], b["mask"], lang), b["label"])
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    model.eval()
+    correct = total = 0
+    for ep in episodes(1, 12):  # held out
+        video = torch.from_numpy(ep.images["agentview"]).permute(0, 3, 1, 2)
+        steps = list(range(0, ep.length + 1, 4))
+        probs = score_prefixes(model, video, LANG[ep.meta.instruction], steps)
+        correct += int(((probs > 0.5).numpy() == ep.success[steps]).sum())
+        total += len(steps)
+    assert correct / total > 0.9, correct / total
+
+
+def test_incremental_scoring_equals_scoring_each_prefix_from_scratch():
+    torch.manual_seed(0)
+    model = instantiate(small_config(max_frames=4)).eval()
+    videos = torch.randint(0, 255, (2, 11, 3, 16, 16), dtype=torch.uint8)
+    lang = torch.randn(2, 16)
+    scorer = IncrementalScorer(model, lang)
+    scorer.add(videos[:, :3])  # a chunk of frames at once ...
+    got = [scorer.score()]
+    for t in range(3, 11):  # ... then one at a time
+        scorer.add(videos[:, t])
+        got.append(scorer.score())
+    for i in range(2):
+        full = [model.score_video(videos[i, : t + 1], lang[i]) for t in range(2, 11)]
+        assert torch.allclose(torch.stack([g[i] for g in got]), torch.stack(full), atol=1e-5)
+        batched = score_prefixes(model, videos[i], lang[i], list(range(11)))[2:]
+        assert torch.allclose(batched, torch.stack(full), atol=1e-5)
+
+
+def test_reflector_stop_fires_above_eta_only():
+    model = instantiate(small_config()).eval()
+    stop = ReflectorStop(model, 0.5, torch.randn(16))
+    frame = {"agentview": np.zeros((16, 16, 3), dtype=np.uint8)}
+    answer = stop(frame)
+    assert answer == (stop.scores[-1] > 0.5) and len(stop.scores) == 1
+    assert ReflectorStop(model, 1.0, torch.randn(16))(frame) is False  # R < 1 always: never stops
+    assert ReflectorStop(model, 0.0, torch.randn(16))(frame) is True
+
+
+@pytest.mark.parametrize("eta", [-0.1, 1.5, True, "0.5", float("nan")])
+def test_eta_outside_the_unit_interval_is_rejected(eta):
+    with pytest.raises(ValueError, match=r"eta .* must be in \[0, 1\]"):
+        check_eta(eta)
+
+
+def test_checkpoint_round_trip_and_contract_errors(tmp_path):
+    model = instantiate(small_config()).eval()
+    cfg = small_config()
+    save_model(tmp_path / "r", model, cfg, {"kind": "reflector", "image_size": 16, "camera": "agentview"})
+    loaded, meta = load_reflector(tmp_path / "r", expect={"image_size": 16})
+    video, lang = torch.randint(0, 255, (5, 3, 16, 16), dtype=torch.uint8), torch.randn(16)
+    assert torch.allclose(loaded.score_video(video, lang), model.score_video(video, lang))
+    assert meta["camera"] == "agentview"
+    with pytest.raises(CheckpointError, match="image_size=16.*needs image_size=128"):
+        load_reflector(tmp_path / "r", expect={"image_size": 128})
+    save_model(tmp_path / "p", model, cfg, {"kind": "policy"})
+    with pytest.raises(CheckpointError, match="'policy' checkpoint, not a reflector"):
+        load_reflector(tmp_path / "p")
+
+
+def test_frozen_hf_tower_trains_only_the_aggregator_and_head(tmp_path):
+    """The paper's setting (a frozen pretrained tower, only the head learns), on a tiny CLIP
+    vision tower saved to and loaded from a local folder: the real loading path."""
+    from transformers import CLIPVisionConfig, CLIPVisionModel
+
+    tiny = CLIPVisionModel(CLIPVisionConfig(hidden_size=32, intermediate_size=64, num_hidden_layers=2,
+                                            num_attention_heads=2, image_size=32, patch_size=8))
+    tiny.save_pretrained(tmp_path / "clip")
+    cfg = small_config(input_size=None)
+    cfg["freeze_encoder"] = True
+    cfg["frame_encoder"] = {"_target_": "worldenv_core.models.backbones.HFVisionBackbone", "cameras": ["agentview"],
+                            "cond_dim": 16, "pretrained_path": str(tmp_path / "clip"), "lora_rank": 0}
+    model = instantiate(cfg)
+    trainable = {n.split(".")[0] for n, p in model.named_parameters() if p.requires_grad}
+    assert "frame_encoder" not in trainable and {"head", "temporal", "frame_proj"} <= trainable
+    frames = torch.randint(0, 255, (2, 3, 3, 48, 48), dtype=torch.uint8)
+    logits = model(frames, torch.ones(2, 3, dtype=torch.bool), torch.randn(2, 16))
+    logits.sum().backward()
+    assert all(p.grad is None for p in model.frame_encoder.parameters())

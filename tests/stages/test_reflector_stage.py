@@ -1,0 +1,76 @@
+"""train_reflector on the tiny task, then evaluate with termination=reflector, through the manifest."""
+import json
+from pathlib import Path
+
+import pytest
+
+from stages.evaluate.run import run as evaluate
+from stages.train_reflector.run import run as train_reflector
+from worldenv_core.data.mcap_io import read_episode
+from worldenv_core.manifest import Manifest
+from worldenv_core.models.reflector import load_reflector
+from worldenv_core.rl.termination import first_success
+from worldenv_core.stage import ConfigError, compose_config
+
+pytestmark = [pytest.mark.sim, pytest.mark.slow]
+SMALL = ["train.steps=6", "train.batch_size=4", "train.log_every=2", "train.checkpoint_every=3", "holdout_every=2",
+         "reflector.d_model=16", "reflector.layers=1", "reflector.heads=2", "reflector.frame_encoder.widths=[8,16]",
+         "reflector.frame_encoder.keypoints=4", "plots=1"]
+
+
+def cfg(stage, exp, *overrides):
+    return compose_config(stage, ["+task=tiny", "scale=tiny", f"experiment_dir={exp}", *overrides])
+
+
+@pytest.fixture(scope="module")
+def trained(demo_experiment):
+    metrics = train_reflector(cfg("train_reflector", demo_experiment, *SMALL, "expert_only=true"))
+    return demo_experiment, metrics
+
+
+def test_demos_go_on_after_success_for_the_reflector(demo_experiment):
+    m = Manifest(demo_experiment)
+    for path in m.resolve(m.latest("collect", task="tiny", source="expert"), kind="episodes"):
+        ep = read_episode(path)
+        assert first_success(ep.success) == ep.length - 8 and ep.success[-9:].all()
+
+
+def test_train_reflector_records_checkpoint_and_report(trained):
+    exp, metrics = trained
+    m = Manifest(exp)
+    rec = m.latest("train_reflector", task="tiny", data="expert")
+    assert rec.inputs == [m.latest("collect", task="tiny", source="expert").id]
+    files = {p.name: p for p in m.resolve(rec)}
+    assert {"model.safetensors", "config.json", "reflector_eval.json", "reflector_eval.md", "reflector_curves.png",
+            "losses.png"} <= set(files)
+    report = json.loads(files["reflector_eval.json"].read_text())
+    real = report["real"]
+    assert real["per_step"]["n"] > 0 and 0 <= real["per_step"]["accuracy"] <= 1
+    assert real["termination"]["all"]["episodes"] == 1 == metrics["held_out"]
+    assert "imagined" not in report  # this experiment has no world simulator
+    model, meta = load_reflector(files["model.safetensors"].parent, expect={"image_size": 64})
+    assert meta["held_out"] and meta["positive_frames"] == 9  # the training demo's 9 frames after success
+
+
+def test_train_reflector_resumes_and_rejects_bad_settings(trained):
+    exp, _ = trained
+    assert train_reflector(cfg("train_reflector", exp, *SMALL, "expert_only=true"))["train_wall_s"] < 5
+    with pytest.raises(ConfigError, match=r"eta .* must be in \[0, 1\], got 1.5"):
+        train_reflector(cfg("train_reflector", exp, *SMALL, "eta=1.5"))
+    with pytest.raises(ConfigError, match="source=policy.*expert_only=true"):
+        train_reflector(cfg("train_reflector", exp, *SMALL))
+
+
+def test_evaluate_with_reflector_termination(trained, tmp_path):
+    from stages.train_policy.run import run as train_policy
+
+    exp, _ = trained
+    train_policy(cfg("train_policy", exp, "train.steps=4", "scale_head.steps=2", "demos_per_task=1", "policy.hidden=32",
+                     "policy.backbone.widths=[8,8,8,8]", "policy.backbone.keypoints=4"))
+    out = evaluate(cfg("evaluate", exp, "termination=reflector", "eta=0.0", "init_states=1", "workers=1",
+                       "progress=false"))
+    (ep,) = json.loads((Path(out["report_dir"]) / "episodes.json").read_text())
+    assert ep["stop_step"] == ep["steps"] == 0  # eta = 0: R > 0 at the very first check stops the episode
+    assert out["reflector_termination"]["episodes"] == 1
+    with pytest.raises(ConfigError, match=r"eta .* must be in \[0, 1\]"):
+        evaluate(cfg("evaluate", exp, "termination=reflector", "eta=-1", "init_states=1"))

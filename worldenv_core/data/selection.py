@@ -1,0 +1,44 @@
+"""Which collected episodes a model stage trains on, and which it holds out.
+
+The world simulator and the reflector read the same episodes (expert demos plus the policy's
+Laplace-perturbed rollouts) and split them by the same rule, so with the same `holdout_every`
+they hold out the same episodes: imagined evaluation then replays episodes neither model saw.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from worldenv_core.manifest import ArtefactError, Manifest, StageRun
+
+
+class MissingEpisodesError(ArtefactError):
+    """A stage needs a collection the experiment does not have yet."""
+
+
+def collected_episodes(manifest: Manifest, stage: StageRun, task: str, scale: str, expert_only: bool) -> list[Path]:
+    """The latest expert collection of this task and scale, plus the latest policy collection
+    unless `expert_only` (the paper's "w/o extra data" ablation); sorted paths."""
+    tags = {"task": task, "scale": scale}
+    paths = stage.use(manifest.latest("collect", source="expert", **tags), kind="episodes")
+    if not expert_only:
+        try:
+            record = manifest.latest("collect", source="policy", **tags)
+        except ArtefactError as e:
+            raise MissingEpisodesError(
+                f"{e}; collect policy rollouts first (`python -m stages.collect +task={task} source=policy`) "
+                "or use expert data only with expert_only=true") from None
+        paths += stage.use(record, kind="episodes")
+    return sorted(paths)
+
+
+def holdout_split(paths: list[Path], every: int) -> tuple[list[Path], list[Path]]:
+    """Every `every`-th path (in sorted order) is held out; at least one is."""
+    paths = sorted(paths)
+    held = set(paths[every - 1::every]) or {paths[-1]}
+    return [p for p in paths if p not in held], [p for p in paths if p in held]
+
+
+def episode_key(path: str | Path) -> str:
+    """A machine-independent name for a collected episode: <collection>/<task>/<file>."""
+    return "/".join(Path(path).parts[-3:])

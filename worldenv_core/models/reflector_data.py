@@ -1,0 +1,74 @@
+"""Training prefixes for the reflector, with balanced sampling.
+
+A prefix ending at frame t shows what a chunked rollout has at that point: the frames at
+t, t - K, t - 2K, ... and the first frame, uniformly sub-sampled to the model's `max_frames`.
+Its label is y_t (1 from the oracle's first success onward). Positives are rare (a demo that
+stops at success has one positive frame), so each batch draws half positives and half
+negatives; `hard_negative_fraction` of the negatives come from the last `hard_window` frames
+before a success, where a premature stop would cost an episode.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from worldenv_core.models.reflector import subsample_indices
+from worldenv_core.rl.termination import success_labels
+
+
+def prefix_frames(t: int, stride: int, max_frames: int) -> np.ndarray:
+    """Frame indices a chunked rollout has at frame t (oldest first), sub-sampled."""
+    idx = np.arange(t, -1, -stride)[::-1]
+    if idx[0] != 0:
+        idx = np.r_[0, idx]
+    return idx[subsample_indices(len(idx), max_frames).numpy()]
+
+
+class PrefixSampler:
+    """Seeded balanced batches of (frames, mask, label, instruction) from in-memory episodes."""
+
+    def __init__(self, episodes, camera: str, stride: int, max_frames: int, hard_negative_fraction: float = 0.25,
+                 hard_window: int = 16):
+        self.frames = [torch.from_numpy(ep.images[camera]).permute(0, 3, 1, 2) for ep in episodes]  # (T+1, 3, H, W)
+        self.instructions = [ep.meta.instruction for ep in episodes]
+        self.stride, self.max_frames = int(stride), int(max_frames)
+        pos, neg, hard = [], [], []
+        for i, ep in enumerate(episodes):
+            y = success_labels(ep.success)
+            for t in range(len(y)):
+                (pos if y[t] else neg).append((i, t))
+            if y.any():
+                ts = int(np.argmax(y))
+                hard += [(i, t) for t in range(max(0, ts - hard_window), ts)]
+        if not pos or not neg:
+            raise ValueError(f"the reflector needs successful and unsuccessful frames; got {len(pos)} positive "
+                             f"and {len(neg)} negative frames from {len(episodes)} episodes")
+        self.pos, self.neg, self.hard = np.array(pos), np.array(neg), np.array(hard or neg)
+        self.hard_fraction = float(hard_negative_fraction)
+
+    def counts(self) -> dict:
+        return {"positive_frames": len(self.pos), "negative_frames": len(self.neg), "hard_negative_frames": len(self.hard)}
+
+    def batch(self, batch_size: int, seed: int) -> dict:
+        """One balanced batch; the same seed gives the same batch (resume is exact)."""
+        rng = np.random.default_rng(seed)
+        n_pos = batch_size // 2
+        n_hard = int(round((batch_size - n_pos) * self.hard_fraction))
+        picks = [self.pos[rng.integers(len(self.pos), size=n_pos)],
+                 self.hard[rng.integers(len(self.hard), size=n_hard)],
+                 self.neg[rng.integers(len(self.neg), size=batch_size - n_pos - n_hard)]]
+        items = np.concatenate(picks)
+        labels = torch.tensor([1.0] * n_pos + [0.0] * (batch_size - n_pos))
+        return {**self.gather(items), "label": labels}
+
+    def gather(self, items) -> dict:
+        seqs = [prefix_frames(int(t), self.stride, self.max_frames) for _, t in items]
+        f = max(len(s) for s in seqs)
+        first = self.frames[0]
+        frames = torch.zeros(len(items), f, *first.shape[1:], dtype=first.dtype)
+        mask = torch.zeros(len(items), f, dtype=torch.bool)
+        for b, ((i, _), s) in enumerate(zip(items, seqs)):
+            frames[b, : len(s)] = self.frames[int(i)][torch.from_numpy(s)]
+            mask[b, : len(s)] = True
+        return {"frames": frames, "mask": mask, "instruction": [self.instructions[int(i)] for i, _ in items]}

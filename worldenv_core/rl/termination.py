@@ -1,0 +1,78 @@
+"""Dynamic termination by the reflector: a rollout stops at the first check where R > eta.
+
+Labels: y_t = 1 from the step the oracle first reports success onward (the task, once done,
+counts as done: the reflector answers "has g been completed by frame t").
+
+Termination is judged per episode against the oracle's first success step t_s:
+* correct stop: the reflector stops at t_stop >= t_s (timing error t_stop - t_s);
+* false stop: it stops before success, or in an episode that never succeeds;
+* missed success: the episode succeeds and the reflector never stops.
+Termination precision/recall/F1 count a correct stop as a true positive, a false stop as a
+false positive and a missed success as a false negative.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def success_labels(success: np.ndarray) -> np.ndarray:
+    """Per-frame oracle flags -> y_t: 1 from the first success onward."""
+    return np.maximum.accumulate(np.asarray(success, dtype=bool))
+
+
+def first_success(success: np.ndarray) -> int | None:
+    hits = np.flatnonzero(np.asarray(success, dtype=bool))
+    return int(hits[0]) if len(hits) else None
+
+
+def check_steps(num_frames: int, every: int) -> list[int]:
+    """The frames a chunked rollout is scored at: the first, every `every`-th, and the last."""
+    steps = list(range(0, num_frames, every))
+    if steps[-1] != num_frames - 1:
+        steps.append(num_frames - 1)
+    return steps
+
+
+@dataclass
+class StopOutcome:
+    t_success: int | None
+    t_stop: int | None
+
+    @property
+    def kind(self) -> str:
+        if self.t_stop is None:
+            return "missed" if self.t_success is not None else "no_stop"
+        if self.t_success is not None and self.t_stop >= self.t_success:
+            return "correct"
+        return "false_stop"
+
+
+def first_stop(steps, scores, eta: float) -> int | None:
+    """The first checked step whose score exceeds eta, or None."""
+    above = np.flatnonzero(np.asarray(scores, dtype=float) > eta)
+    return int(steps[above[0]]) if len(above) else None
+
+
+def termination_metrics(outcomes: list[StopOutcome]) -> dict:
+    kinds = [o.kind for o in outcomes]
+    tp, fp, fn = kinds.count("correct"), kinds.count("false_stop"), kinds.count("missed")
+    n_success = sum(o.t_success is not None for o in outcomes)
+    early = [o for o in outcomes if o.kind == "false_stop" and o.t_success is not None]
+    timing = [o.t_stop - o.t_success for o in outcomes if o.kind == "correct"]
+    return {
+        "episodes": len(outcomes), "successful_episodes": n_success,
+        "correct_stops": tp, "false_stops": fp, "missed_successes": fn, "no_stop_failures": kinds.count("no_stop"),
+        "precision": tp / (tp + fp) if tp + fp else float("nan"),
+        "recall": tp / (tp + fn) if tp + fn else float("nan"),
+        "f1": 2 * tp / (2 * tp + fp + fn) if tp + fp + fn else float("nan"),
+        # rates over the episodes where the event is possible
+        "false_stop_before_success_rate": len(early) / n_success if n_success else float("nan"),
+        "false_stop_in_failure_rate": (fp - len(early)) / (len(outcomes) - n_success) if len(outcomes) > n_success else float("nan"),
+        "missed_success_rate": fn / n_success if n_success else float("nan"),
+        "timing_error_mean": float(np.mean(timing)) if timing else float("nan"),
+        "timing_error_median": float(np.median(timing)) if timing else float("nan"),
+        "early_stop_error_mean": float(np.mean([o.t_success - o.t_stop for o in early])) if early else float("nan"),
+    }
