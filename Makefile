@@ -45,13 +45,16 @@ expert-table: setup
 # The pipeline so far, in one experiment directory; each stage finds its inputs through
 # $(EXP)/manifest.jsonl and skips work already done (re-running resumes).
 STAGE_ARGS = +task=$(TASK) scale=$(SCALE) experiment_dir=$(EXP)
+# Collections go on for 32 steps after success: the reflector's positive frames.
 pipeline: setup
-	$(PY) -m stages.collect $(STAGE_ARGS) source=expert
+	$(PY) -m stages.collect $(STAGE_ARGS) source=expert post_success_steps=32
 	$(PY) -m stages.train_policy $(STAGE_ARGS)
-	$(PY) -m stages.collect $(STAGE_ARGS) source=policy
+	$(PY) -m stages.collect $(STAGE_ARGS) source=policy post_success_steps=32
 	$(PY) -m stages.train_worldsim $(STAGE_ARGS)
+	$(PY) -m stages.train_reflector $(STAGE_ARGS)
 	$(PY) -m stages.evaluate $(STAGE_ARGS) termination=oracle
 	$(PY) -m stages.evaluate $(STAGE_ARGS) termination=fixed
+	$(PY) -m stages.evaluate $(STAGE_ARGS) termination=reflector
 
 # The same pipeline on the tiny task and scale: minutes, proves the plumbing.
 smoke:

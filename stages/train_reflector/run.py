@@ -26,7 +26,7 @@ from worldenv_core.data.selection import MissingEpisodesError, collected_episode
 from worldenv_core.manifest import ArtefactError, StageRun, config_hash
 from worldenv_core.metrics import binary_metrics
 from worldenv_core.models.checkpoint import save_model
-from worldenv_core.models.reflector import check_eta, score_prefixes
+from worldenv_core.models.reflector import check_eta, prefix_scores
 from worldenv_core.models.reflector_data import PrefixSampler
 from worldenv_core.models.text import InstructionEncoder
 from worldenv_core.rl.termination import StopOutcome, check_steps, first_stop, first_success, success_labels, termination_metrics
@@ -76,48 +76,24 @@ def run(cfg: DictConfig) -> dict:
             raise ConfigError(f"{e}; collect more episodes (policy rollouts give failures)") from None
         model_cfg = OmegaConf.to_container(cfg.reflector, resolve=True)
         model = instantiate(model_cfg, _convert_="all").to(device)
-        opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=cfg.train.lr,
-                                weight_decay=cfg.train.weight_decay)
-        ckpts = Checkpoints(work)
-        step, history = ckpts.restore(model, {"reflector": opt})
         meta = {"kind": "reflector", "task": task.name, "suite": task.suite, "camera": cfg.camera,
                 "image_size": task.image_size, "frame_stride": cfg.frame_stride, "eta": float(cfg.eta),
                 "episodes": len(episodes), "held_out": [episode_key(p) for p in held], **sampler.counts()}
         encoder = InstructionEncoder()
-        total = cfg.train.steps
-        log.info("training on %d episodes (%s; %d held out) for %d steps on %s; work dir %s", len(episodes),
-                 sampler.counts(), len(held_eps), total, device, work)
-        t0, running = time.perf_counter(), defaultdict(list)
-        bar = tqdm(range(step, total), initial=step, total=total, desc="train_reflector", dynamic_ncols=True)
-        for step in bar:
-            model.train()
-            b = sampler.batch(cfg.train.batch_size, seed=cfg.seed * 1_000_003 + step)  # by step: resumes exactly
-            frames, mask = _augment(model, b["frames"], b["mask"], cfg.train.augment_shift,
-                                    torch.Generator().manual_seed(cfg.seed * 7_000_003 + step))
-            logits = model(frames.to(device), mask.to(device), encoder(b["instruction"]).to(device))
-            label = b["label"].to(device)
-            loss = torch.nn.functional.binary_cross_entropy_with_logits(logits, label)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
-            opt.step()
-            running["bce"].append(loss.item())
-            running["batch_accuracy"].append(((logits > 0).float() == label).float().mean().item())
-            done = step + 1
-            if done % cfg.train.log_every == 0 or done == total:
-                entry = {"step": done, **{k: sum(v) / len(v) for k, v in running.items()}}
-                history.append(entry)
-                running.clear()
-                bar.set_postfix({k: f"{v:.3f}" for k, v in entry.items() if k != "step"})
-            if done % cfg.train.checkpoint_every == 0 or done == total:
-                ckpts.save(done, model, model_cfg, meta, {"reflector": opt}, history)
-        bar.close()
+        t0 = time.perf_counter()
+        if getattr(model, "trainable", True):
+            log.info("training on %d episodes (%s; %d held out) for %d steps on %s; work dir %s", len(episodes),
+                     sampler.counts(), len(held_eps), cfg.train.steps, device, work)
+            history = train(cfg, model, model_cfg, meta, sampler, encoder, work, device)
+            stage.add_output(plot_history(history, work / "losses.png", f"train_reflector {task.name}"), kind="plot")
+        else:  # the VLM yes/no mode: nothing to train, its checkpoint is the config naming the VLM
+            log.info("%s has nothing to train: evaluating it on %d held-out episodes", type(model).__name__,
+                     len(held_eps))
         train_s = time.perf_counter() - t0
         model = model.cpu().eval()
-        final = save_model(work / "reflector", model, model_cfg, {**meta, "step": total})
+        final = save_model(work / "reflector", model, model_cfg, {**meta, "step": cfg.train.steps})
         for f in sorted(final.iterdir()):
             stage.add_output(f, kind="checkpoint")
-        stage.add_output(plot_history(history, work / "losses.png", f"train_reflector {task.name}"), kind="plot")
 
         t1 = time.perf_counter()
         videos = {"real": [torch.from_numpy(ep.images[cfg.camera]).permute(0, 3, 1, 2) for ep in held_eps]}
@@ -135,10 +111,44 @@ def run(cfg: DictConfig) -> dict:
         write_report(report, curves, held_eps, imagined_eps, cfg, work)
         for name in ("reflector_eval.json", "reflector_eval.md", "reflector_curves.png"):
             stage.add_output(work / name, kind="report" if name.endswith(("json", "md")) else "plot")
-        stage.metrics.update({"episodes": len(episodes), "held_out": len(held_eps), "steps": total,
+        stage.metrics.update({"episodes": len(episodes), "held_out": len(held_eps), "steps": cfg.train.steps,
                               "train_wall_s": round(train_s, 1), "device": str(device), **_headline(report)})
         log.info("reflector saved to %s; metrics %s", final, json.dumps(stage.metrics))
     return stage.metrics
+
+
+def train(cfg, model, model_cfg: dict, meta: dict, sampler: PrefixSampler, encoder, work: Path, device) -> list[dict]:
+    """BCE on balanced prefixes; resumes from the work dir's last checkpoint. Returns the history."""
+    opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=cfg.train.lr,
+                            weight_decay=cfg.train.weight_decay)
+    ckpts = Checkpoints(work)
+    step, history = ckpts.restore(model, {"reflector": opt})
+    total, running = cfg.train.steps, defaultdict(list)
+    bar = tqdm(range(step, total), initial=step, total=total, desc="train_reflector", dynamic_ncols=True)
+    for step in bar:
+        model.train()
+        b = sampler.batch(cfg.train.batch_size, seed=cfg.seed * 1_000_003 + step)  # by step: resumes exactly
+        frames, mask = _augment(model, b["frames"], b["mask"], cfg.train.augment_shift,
+                                torch.Generator().manual_seed(cfg.seed * 7_000_003 + step))
+        logits = model(frames.to(device), mask.to(device), encoder(b["instruction"]).to(device))
+        label = b["label"].to(device)
+        loss = torch.nn.functional.binary_cross_entropy_with_logits(logits, label)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        opt.step()
+        running["bce"].append(loss.item())
+        running["batch_accuracy"].append(((logits > 0).float() == label).float().mean().item())
+        done = step + 1
+        if done % cfg.train.log_every == 0 or done == total:
+            entry = {"step": done, **{k: sum(v) / len(v) for k, v in running.items()}}
+            history.append(entry)
+            running.clear()
+            bar.set_postfix({k: f"{v:.3f}" for k, v in entry.items() if k != "step"})
+        if done % cfg.train.checkpoint_every == 0 or done == total:
+            ckpts.save(done, model, model_cfg, meta, {"reflector": opt}, history)
+    bar.close()
+    return history
 
 
 def _augment(model, frames: torch.Tensor, mask: torch.Tensor, shift: int, generator: torch.Generator):
@@ -195,8 +205,7 @@ def evaluate_videos(model, encoder, episodes, videos, stride: int, eta: float) -
     per_eta = {e: [] for e in ETA_SWEEP}
     for ep, video in zip(episodes, videos):
         steps = check_steps(len(video), stride)
-        lang = encoder([ep.meta.instruction])[0]
-        scores = score_prefixes(model, video, lang, steps).numpy()
+        scores = prefix_scores(model, video, ep.meta.instruction, steps, encoder).numpy()
         labels = success_labels(ep.success)[steps]
         steps_all.append(steps), scores_all.append(scores), labels_all.append(labels)
         curves.append((steps, scores))

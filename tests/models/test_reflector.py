@@ -99,12 +99,13 @@ def test_incremental_scoring_equals_scoring_each_prefix_from_scratch():
 
 def test_reflector_stop_fires_above_eta_only():
     model = instantiate(small_config()).eval()
-    stop = ReflectorStop(model, 0.5, torch.randn(16))
+    encoder = lambda texts: torch.randn(len(texts), 16)  # noqa: E731 - stands in for MiniLM
+    stop = ReflectorStop(model, 0.5, "red", encoder)
     frame = {"agentview": np.zeros((16, 16, 3), dtype=np.uint8)}
     answer = stop(frame)
     assert answer == (stop.scores[-1] > 0.5) and len(stop.scores) == 1
-    assert ReflectorStop(model, 1.0, torch.randn(16))(frame) is False  # R < 1 always: never stops
-    assert ReflectorStop(model, 0.0, torch.randn(16))(frame) is True
+    assert ReflectorStop(model, 1.0, "red", encoder)(frame) is False  # R < 1 always: never stops
+    assert ReflectorStop(model, 0.0, "red", encoder)(frame) is True
 
 
 @pytest.mark.parametrize("eta", [-0.1, 1.5, True, "0.5", float("nan")])

@@ -213,7 +213,7 @@ def evaluate_policy_task(job: PolicyEvalJob) -> dict:
         if reflector is not None:
             from worldenv_core.models.reflector import ReflectorStop
 
-            stop = ReflectorStop(reflector, job.eta, runner.encoder([env.instruction])[0])
+            stop = ReflectorStop(reflector, job.eta, env.instruction, runner.encoder)
         traj = policy_episode(env, runner, i, 0, job.max_steps, stop_on_success=job.termination == "oracle",
                               stop_when=stop)
         flags = [f.success for f in traj.frames]

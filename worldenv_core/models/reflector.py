@@ -153,13 +153,30 @@ def score_prefixes(model: Reflector, frames: torch.Tensor, instruction: torch.Te
     return torch.sigmoid(model.aggregate(batch, mask, instruction[None].expand(n, -1)))
 
 
+def incremental_scorer(model, instruction: str, encoder):
+    """An incremental scorer of one video for either kind of reflector: the trained one (fed the
+    instruction's embedding from `encoder`) or the VLM yes/no mode (fed the text)."""
+    if getattr(model, "trainable", True) is False:
+        from worldenv_core.models.vlm_reward import VLMIncrementalScorer
+
+        return VLMIncrementalScorer(model, [instruction])
+    return IncrementalScorer(model, encoder([instruction]))
+
+
+def prefix_scores(model, frames: torch.Tensor, instruction: str, steps, encoder) -> torch.Tensor:
+    """`score_prefixes` for either kind of reflector (see `incremental_scorer`)."""
+    if getattr(model, "trainable", True) is False:
+        return model.score_prefixes(frames, instruction, steps)
+    return score_prefixes(model, frames, encoder([instruction])[0], steps)
+
+
 class ReflectorStop:
     """Dynamic termination for one real-simulator episode: called with the boundary images of
-    every chunk, it adds the reflector camera's frame to an `IncrementalScorer` and answers
+    every chunk, it adds the reflector camera's frame to an incremental scorer and answers
     whether R > eta. `scores` keeps R at every check."""
 
-    def __init__(self, model: Reflector, eta: float, instruction: torch.Tensor):
-        self.scorer = IncrementalScorer(model, instruction[None])
+    def __init__(self, model, eta: float, instruction: str, encoder):
+        self.scorer = incremental_scorer(model, instruction, encoder)
         self.eta, self.cameras, self.scores = check_eta(eta), [model.camera], []
 
     def __call__(self, images: dict) -> bool:
