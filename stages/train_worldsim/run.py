@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.envs.imagined import ImaginedSimulator, open_loop_fidelity
-from worldenv_core.kinematics.action_map import draw_action_maps
+from worldenv_core.kinematics.action_map import draw_action_maps_per_rollout
 from worldenv_core.kinematics.camera import PinholeCamera
 from worldenv_core.kinematics.next_state import NextStateModel, state_errors
 from worldenv_core.data.selection import MissingEpisodesError, collected_episodes, episode_key, holdout_split
@@ -61,12 +61,7 @@ def task_cameras(cfg: DictConfig, task_ids: list[int]) -> dict[int, PinholeCamer
 
 def _maps(proprio: torch.Tensor, task_ids, cameras: dict[int, PinholeCamera], size: int) -> torch.Tensor:
     """Action maps for a batch whose items may come from tasks with different cameras."""
-    out = torch.empty(*proprio.shape[:2], 3, size, size)
-    task_ids = torch.as_tensor(task_ids)
-    for tid in task_ids.unique().tolist():
-        sel = task_ids == tid
-        out[sel] = draw_action_maps(proprio[sel].float(), cameras[tid], size=size)
-    return out
+    return draw_action_maps_per_rollout(proprio, [cameras[int(t)] for t in task_ids], size)
 
 
 def run(cfg: DictConfig) -> dict:

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import torch
 
-from worldenv_core.kinematics.action_map import draw_action_maps
+from worldenv_core.kinematics.action_map import draw_action_maps, draw_action_maps_per_rollout
 from worldenv_core.kinematics.camera import PinholeCamera
 from worldenv_core.kinematics.next_state import NextStateModel, observed_carry
 from worldenv_core.models.worldsim import WorldSimulator
@@ -38,6 +38,7 @@ class ImaginedSimulator:
         self.latents: torch.Tensor | None = None  # (B, T, C, h, w), all frames so far
         self.proprio: torch.Tensor | None = None
         self.carry = None
+        self.rollout_cameras: list[PinholeCamera] | None = None  # per rollout, when they differ
 
     @classmethod
     def from_checkpoint(cls, path, task_id: int, sampling_steps: int | None = None, device="cpu",
@@ -56,11 +57,16 @@ class ImaginedSimulator:
                    sampling_steps=sampling_steps, device=device)
 
     @torch.no_grad()
-    def reset(self, frames: torch.Tensor, proprio: torch.Tensor, prev_proprio: torch.Tensor | None = None) -> None:
+    def reset(self, frames: torch.Tensor, proprio: torch.Tensor, prev_proprio: torch.Tensor | None = None,
+              cameras: list[PinholeCamera] | None = None) -> None:
         """frames (B, T0, 3, H, W) uint8: the real frames so far (T0 >= 1, the last is current);
-        proprio (B, 7) the current state; prev_proprio (B, 7) the one before (momentum), if any."""
+        proprio (B, 7) the current state; prev_proprio (B, 7) the one before (momentum), if any;
+        cameras: one per rollout when the batch mixes tasks of different scenes (default: `camera`)."""
         if frames.dim() != 5 or frames.shape[-1] != self.model.image_size:
             raise ValueError(f"frames must be (B, T, 3, {self.model.image_size}, {self.model.image_size}), got {tuple(frames.shape)}")
+        if cameras is not None and any(c.image_size != self.model.image_size for c in cameras):
+            raise ValueError(f"a rollout camera does not render {self.model.image_size} px")
+        self.rollout_cameras = list(cameras) if cameras is not None else None
         self.latents = self.model.encode(frames.to(self.device))
         self.proprio = proprio.to(self.device, torch.float64)
         self.carry = observed_carry(prev_proprio.to(self.device, torch.float64), self.proprio) if prev_proprio is not None else None
@@ -82,7 +88,8 @@ class ImaginedSimulator:
             raise ValueError(f"actions must be ({self.latents.shape[0]}, {self.model.chunk}, 7), got {tuple(actions.shape)}")
         actions = actions.to(self.device)
         states, self.carry = self.kinematics.rollout(self.proprio, actions.double(), self.carry)
-        maps = draw_action_maps(states.float(), self.camera, size=self.model.map_size)
+        maps = (draw_action_maps(states.float(), self.camera, size=self.model.map_size) if self.rollout_cameras is None
+                else draw_action_maps_per_rollout(states, self.rollout_cameras, self.model.map_size))
         z = self.model.predict_latents(self.memory(), maps, actions.float(), steps=self.steps, generator=generator)
         self.latents = torch.cat([self.latents, z], dim=1)
         self.proprio = states[:, -1]

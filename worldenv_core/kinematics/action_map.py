@@ -62,3 +62,18 @@ def draw_action_maps(states: torch.Tensor, camera: PinholeCamera, size: int | No
         alpha = lines[:, axis, None]
         img = img * (1 - alpha) + alpha * colours[axis][None, :, None, None]
     return img.reshape(*lead, 3, size, size)
+
+
+def draw_action_maps_per_rollout(states: torch.Tensor, cameras: list[PinholeCamera], size: int | None = None) -> torch.Tensor:
+    """Action maps for a batch whose rollouts may see different cameras (tasks of other scenes):
+    states (B, ..., 7), cameras[b] the camera of rollout b. One batched draw per distinct camera."""
+    if len(cameras) != states.shape[0]:
+        raise ValueError(f"{len(cameras)} cameras for a batch of {states.shape[0]} rollouts")
+    size = int(size or cameras[0].image_size)
+    out = torch.empty(*states.shape[:-1], 3, size, size, device=states.device)
+    groups: dict[int, list[int]] = {}
+    for i, cam in enumerate(cameras):
+        groups.setdefault(id(cam), []).append(i)
+    for idx in groups.values():
+        out[idx] = draw_action_maps(states[idx].float(), cameras[idx[0]], size=size)
+    return out

@@ -1,0 +1,87 @@
+"""The imagined environment of LOOP (paper sec. 4.3, Algorithm 1 lines 8-19), vectorised.
+
+`reset(contexts)` starts one rollout per context c = (instruction g, first frame o_1, proprio
+s_1); `step(chunks)` takes an action chunk per rollout, advances the kinematics and the world
+simulator (all rollouts in one batch on the model's device, whatever their tasks), scores each
+prefix with the reflector (cached per-frame features) and marks a rollout done when R > eta or at
+the horizon. The reward of a rollout is R at its termination step, t_end. A done rollout's
+outputs are frozen: its later frames are neither scored nor returned as observations that count.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from worldenv_core.envs.imagined import ImaginedSimulator
+from worldenv_core.kinematics.camera import PinholeCamera
+from worldenv_core.models.reflector import IncrementalScorer, check_eta
+
+
+@dataclass
+class Context:
+    task_id: int
+    instruction: str
+    frame: torch.Tensor  # (3, H, W) uint8: o_1
+    proprio: torch.Tensor  # (7,): s_1
+
+
+@dataclass
+class StepResult:
+    frames: torch.Tensor  # (B, 3, H, W) uint8: the newest frame of every rollout (what the policy sees next)
+    proprio: torch.Tensor  # (B, 7)
+    reward: torch.Tensor  # (B,) R(o_{1:t}, g) now; for done rollouts, R at t_end
+    done: torch.Tensor  # (B,) bool
+    t: torch.Tensor  # (B,) steps taken; for done rollouts, t_end
+    by_reflector: torch.Tensor  # (B,) bool: stopped because R > eta (not by the horizon)
+
+
+class ImaginedEnv:
+    def __init__(self, sim: ImaginedSimulator, cameras: dict[int, PinholeCamera], reflector, encoder, eta: float,
+                 horizon: int):
+        """sim: the world simulator + kinematics; cameras: task id -> the world model's camera in that
+        task's scene; reflector: a trained `Reflector` watching the same camera; encoder: instruction
+        strings -> embeddings (the frozen MiniLM)."""
+        self.sim, self.cameras, self.reflector, self.encoder = sim, cameras, reflector.eval(), encoder
+        self.eta, self.horizon, self.chunk = check_eta(eta), int(horizon), sim.model.chunk
+        self.scorer: IncrementalScorer | None = None
+        self.state: StepResult | None = None
+
+    def reset(self, contexts: list[Context]) -> StepResult:
+        missing = sorted({c.task_id for c in contexts} - set(self.cameras))
+        if missing:
+            raise ValueError(f"the world simulator has no camera for task(s) {missing}; it knows {sorted(self.cameras)}")
+        device = self.sim.device
+        frames = torch.stack([c.frame for c in contexts]).to(device)
+        proprio = torch.stack([torch.as_tensor(c.proprio) for c in contexts]).double().to(device)
+        self.sim.reset(frames[:, None], proprio, cameras=[self.cameras[c.task_id] for c in contexts])
+        self.scorer = IncrementalScorer(self.reflector, self.encoder([c.instruction for c in contexts]).to(device))
+        self.scorer.add(frames)
+        b = len(contexts)
+        self.state = StepResult(frames=frames, proprio=proprio.float(), reward=self.scorer.score(),
+                                done=torch.zeros(b, dtype=torch.bool, device=device),
+                                t=torch.zeros(b, dtype=torch.long, device=device),
+                                by_reflector=torch.zeros(b, dtype=torch.bool, device=device))
+        return self.state
+
+    @torch.no_grad()
+    def step(self, actions: torch.Tensor, generator: torch.Generator | None = None) -> StepResult:
+        """actions (B, K, 7) in the simulator's units -> the state after the chunk."""
+        if self.state is None:
+            raise RuntimeError("call reset() before step()")
+        prev = self.state
+        out = self.sim.step(actions, decode="last", generator=generator)
+        frames = out.frames[:, -1]
+        self.scorer.add(frames)
+        score = self.scorer.score()
+        t = prev.t + self.chunk
+        live = ~prev.done
+        stop = live & (score > self.eta)
+        timeout = live & ~stop & (t >= self.horizon)
+        self.state = StepResult(
+            frames=torch.where(live[:, None, None, None], frames, prev.frames),
+            proprio=torch.where(live[:, None], out.proprio[:, -1], prev.proprio),
+            reward=torch.where(live, score, prev.reward), done=prev.done | stop | timeout,
+            t=torch.where(live, t, prev.t), by_reflector=prev.by_reflector | stop)
+        return self.state
