@@ -100,3 +100,25 @@ def start(cfg: DictConfig, validate) -> Manifest:
     manifest = experiment(cfg)
     seed_everything(cfg.seed)
     return manifest
+
+
+POLICY_SOURCES = {"sft": "train_policy", "post_trained": "post_train_loop"}
+
+
+def resolve_checkpoint(stage_run, ref, producer: str, task: str, scale: str) -> str:
+    """A model checkpoint folder: `ref` given as a folder, as a manifest record id, or (ref None)
+    the latest `producer` record of this task and scale. The record becomes the run's input."""
+    from pathlib import Path as _Path
+
+    if ref and _Path(str(ref)).is_dir():
+        return str(_Path(str(ref)).resolve())
+    record = stage_run.manifest.get(ref) if ref else stage_run.manifest.latest(producer, task=task, scale=scale)
+    return str(stage_run.use(record, kind="checkpoint")[0].parent)
+
+
+def resolve_policy(cfg: DictConfig, stage_run) -> str:
+    """`policy=`: sft (the latest train_policy; also null), post_trained (the latest
+    post_train_loop), a checkpoint folder, or a record id."""
+    ref = cfg.policy
+    producer = POLICY_SOURCES.get(ref, "train_policy")
+    return resolve_checkpoint(stage_run, None if ref in POLICY_SOURCES else ref, producer, cfg.task.name, cfg.scale.name)

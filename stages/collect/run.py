@@ -22,7 +22,7 @@ from worldenv_core.data.mcap_io import read_info
 from worldenv_core.envs.tasks import get_task, num_tasks, resolve_task_ids
 from worldenv_core.manifest import StageRun, config_hash
 from worldenv_core.parallel import run_jobs
-from worldenv_core.stage import ConfigError, positive_int, require_task, resolved, start
+from worldenv_core.stage import ConfigError, positive_int, require_task, resolve_policy, resolved, start
 log = logging.getLogger("worldenv.collect")
 SOURCES = ("expert", "policy", "lerobot")
 INIT_MODES = ("sampled", "benchmark")
@@ -98,17 +98,6 @@ def run(cfg: DictConfig) -> dict:
         stage.metrics.update(summary)
         (run_dir / "collect_summary.json").write_text(json.dumps(summary, indent=2))
     return summary
-
-
-def resolve_policy(cfg: DictConfig, stage: StageRun) -> str:
-    """A checkpoint folder given directly, a train_policy record id, or the latest of this task/scale."""
-    ref = cfg.policy
-    if ref and Path(str(ref)).is_dir():
-        return str(Path(str(ref)).resolve())
-    record = (stage.manifest.get(ref) if ref else
-              stage.manifest.latest("train_policy", task=cfg.task.name, scale=cfg.scale.name))
-    files = stage.use(record, kind="checkpoint")
-    return str(files[0].parent)
 
 
 def _collect(cfg: DictConfig, task_ids: list[int], stage: StageRun) -> dict:

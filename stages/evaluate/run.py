@@ -11,7 +11,6 @@ import numpy as np
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from stages.collect.run import resolve_policy
 from worldenv_core.envs.collection import PolicyEvalJob, evaluate_policy_task
 from worldenv_core.envs.tasks import resolve_task_ids
 from worldenv_core.manifest import StageRun
@@ -19,7 +18,8 @@ from worldenv_core.models.checkpoint import read_config
 from worldenv_core.models.reflector import check_eta
 from worldenv_core.parallel import run_jobs
 from worldenv_core.rl.termination import StopOutcome, termination_metrics
-from worldenv_core.stage import ConfigError, positive_int, require_task, resolved, start
+from worldenv_core.stage import (POLICY_SOURCES, ConfigError, positive_int, require_task, resolve_checkpoint,
+                                 resolve_policy, resolved, start)
 from worldenv_core.viz import montage_video
 
 log = logging.getLogger("worldenv.evaluate")
@@ -44,14 +44,8 @@ def validate(cfg: DictConfig) -> None:
 
 
 def resolve_reflector(cfg: DictConfig, stage: StageRun) -> str:
-    """A checkpoint folder given directly, a train_reflector record id, or the latest of this task/scale."""
-    ref = cfg.reflector
-    if ref and Path(str(ref)).is_dir():
-        path = str(Path(str(ref)).resolve())
-    else:
-        record = (stage.manifest.get(ref) if ref else
-                  stage.manifest.latest("train_reflector", task=cfg.task.name, scale=cfg.scale.name))
-        path = str(stage.use(record, kind="checkpoint")[0].parent)
+    """`reflector=`: a checkpoint folder, a train_reflector record id, or null (the latest)."""
+    path = resolve_checkpoint(stage, cfg.reflector, "train_reflector", cfg.task.name, cfg.scale.name)
     camera = read_config(path)["meta"].get("camera")
     if camera not in cfg.task.cameras:
         raise ConfigError(f"reflector {path} watches camera {camera!r}, which task {cfg.task.name} does not render "
@@ -65,7 +59,8 @@ def run(cfg: DictConfig) -> dict:
     run_dir = (Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized()
                else manifest.root / "evaluate" / cfg.termination)
     run_dir.mkdir(parents=True, exist_ok=True)
-    tags = {"task": task.name, "scale": cfg.scale.name, "termination": cfg.termination}
+    tags = {"task": task.name, "scale": cfg.scale.name, "termination": cfg.termination,
+            "policy": cfg.policy if cfg.policy in POLICY_SOURCES else "custom"}
     with StageRun(manifest, "evaluate", tags, resolved(cfg)) as stage:
         policy_path = resolve_policy(cfg, stage)
         reflector_path = resolve_reflector(cfg, stage) if cfg.termination == "reflector" else None

@@ -7,6 +7,8 @@ action (the sum over its action dimensions); `mask` marks the steps a rollout re
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
 
@@ -41,3 +43,94 @@ def ppo_loss(logp_new: torch.Tensor, logp_old: torch.Tensor, advantages: torch.T
                  "approx_kl": float((((ratio - 1) - log_ratio) * mask).sum() / steps),
                  "ratio_mean": float((ratio * mask).sum() / steps)}
     return loss, stats
+
+
+# ---- Algorithm 1: rollouts in imagination, then K PPO steps -------------------------------------
+
+
+@dataclass
+class RolloutBatch:
+    """Everything PPO needs from one iteration's rollouts. R rollouts x C chunks of K steps."""
+
+    frames: torch.Tensor  # (R, C, 3, H, W) uint8: the observation each chunk was chosen from
+    proprio: torch.Tensor  # (R, C, 7)
+    instruction: torch.Tensor  # (R, D) instruction embeddings
+    actions: torch.Tensor  # (R, C, K, A) sampled actions, in the policy's normalised space
+    logp_old: torch.Tensor  # (R, C, K) behaviour log-probabilities per executed step
+    mask: torch.Tensor  # (R, C, K) 1 where the rollout had not terminated before that chunk
+    rewards: torch.Tensor  # (R,) R(o_{1:t_end}, g)
+    advantages: torch.Tensor  # (R,)
+    t_end: torch.Tensor  # (R,) steps taken
+    by_reflector: torch.Tensor  # (R,) stopped because R > eta
+    beta_mean: float
+
+
+@torch.no_grad()
+def collect_rollouts(policy, env, contexts: list, n_rollouts: int, encoder,
+                     generator: torch.Generator | None = None) -> RolloutBatch:
+    """N rollouts per context from the frozen behaviour policy (Algorithm 1, lines 5-25): actions
+    ~ Laplace(mu, exp(beta)); all C x N rollouts advance together until every one is done."""
+    from worldenv_core.rl.laplace import laplace_log_prob, laplace_sample
+
+    if n_rollouts < 2:
+        raise ValueError(f"RLOO needs at least 2 rollouts per context, got N={n_rollouts}")
+    policy.eval()
+    expanded = [c for c in contexts for _ in range(n_rollouts)]  # context-major: (C, N) after a view
+    state = env.reset(expanded)
+    lang = encoder([c.instruction for c in expanded]).to(state.frames.device)
+    camera = policy.cameras[0]
+    frames, proprio, actions, logps, masks, betas = [], [], [], [], [], []
+    while not state.done.all():
+        mu, beta = policy({camera: state.frames}, state.proprio, lang)
+        a = laplace_sample(mu, beta, generator)
+        frames.append(state.frames), proprio.append(state.proprio), actions.append(a)
+        logps.append(laplace_log_prob(a, mu, beta))  # (R, K): one log-prob per executed step
+        masks.append((~state.done).float()[:, None].expand(-1, a.shape[1]))
+        betas.append(beta[~state.done].mean())
+        state = env.step(policy.unnormalize_actions(a), generator=generator)
+    rewards = state.reward.float()
+    advantages = rloo_advantages(rewards.view(len(contexts), n_rollouts)).reshape(-1)
+    return RolloutBatch(frames=torch.stack(frames, 1), proprio=torch.stack(proprio, 1), instruction=lang,
+                        actions=torch.stack(actions, 1), logp_old=torch.stack(logps, 1), mask=torch.stack(masks, 1),
+                        rewards=rewards, advantages=advantages, t_end=state.t, by_reflector=state.by_reflector,
+                        beta_mean=float(torch.stack(betas).mean()))
+
+
+def ppo_update(policy, optimizer, batch: RolloutBatch, epochs: int, epsilon: float, minibatch: int,
+               generator: torch.Generator | None = None) -> dict:
+    """K epochs of eq. 5 over the batch's rollouts in minibatches of whole rollouts; the loss of
+    each minibatch is normalised by its summed trajectory lengths."""
+    from worldenv_core.rl.laplace import laplace_log_prob
+
+    policy.train()
+    r, c = batch.mask.shape[:2]
+    camera = policy.cameras[0]
+    stats: dict[str, list[float]] = {"loss": [], "clip_fraction": [], "approx_kl": [], "ratio_mean": []}
+    for _ in range(epochs):
+        for idx in torch.randperm(r, generator=generator).split(minibatch):
+            live = batch.mask[idx, :, 0] > 0  # (m, C): chunks the rollout really took
+            rows, cols = live.nonzero(as_tuple=True)
+            mu, beta = policy({camera: batch.frames[idx][rows, cols]}, batch.proprio[idx][rows, cols],
+                              batch.instruction[idx][rows])
+            logp_new = torch.zeros_like(batch.logp_old[idx])
+            logp_new[rows, cols] = laplace_log_prob(batch.actions[idx][rows, cols], mu, beta)
+            loss, s = ppo_loss(logp_new.flatten(1), batch.logp_old[idx].flatten(1), batch.advantages[idx],
+                               batch.mask[idx].flatten(1), epsilon)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
+            optimizer.step()
+            stats["loss"].append(loss.item())
+            for k, v in s.items():
+                stats[k].append(v)
+    policy.eval()
+    return {k: sum(v) / len(v) for k, v in stats.items()}
+
+
+def policy_param_groups(policy, lr_backbone: float, lr_heads: float) -> list[dict]:
+    """The paper's two learning rates: the vision backbone (or its LoRA adapters) and the rest
+    (trunk, action and scale heads), trainable parameters only."""
+    backbone = [p for p in policy.backbone.parameters() if p.requires_grad]
+    ids = {id(p) for p in backbone}
+    rest = [p for p in policy.parameters() if p.requires_grad and id(p) not in ids]
+    return [{"params": backbone, "lr": lr_backbone, "name": "backbone"}, {"params": rest, "lr": lr_heads, "name": "heads"}]
