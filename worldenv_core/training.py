@@ -99,11 +99,11 @@ def plot_history(history: list[dict], path: str | Path, title: str = "") -> Path
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    keys = [k for k in history[0] if k != "step"] if history else []
+    keys = [k for k in dict.fromkeys(k for h in history for k in h) if k != "step"]  # entries may differ
     fig, axes = plt.subplots(1, max(1, len(keys)), figsize=(4 * max(1, len(keys)), 3), squeeze=False)
     for ax, k in zip(axes[0], keys):
         pts = [(h["step"], h[k]) for h in history if k in h]
-        ax.plot(*zip(*pts))
+        ax.plot(*zip(*pts), marker="o" if len(pts) < 20 else None)
         ax.set_title(k)
         ax.set_xlabel("step")
     fig.suptitle(title)

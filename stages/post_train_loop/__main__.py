@@ -1,0 +1,14 @@
+"""python -m stages.post_train_loop +task=<suite> [rl.eta=0.5] [rl.n_rollouts=8]"""
+import hydra
+from omegaconf import DictConfig
+
+from stages.post_train_loop.run import run
+
+
+@hydra.main(config_path="../../conf", config_name="post_train_loop", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    run(cfg)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,164 @@
+"""Stage `post_train_loop`: LOOP (RLOO + PPO) post-training inside the world model (paper
+sec. 4.3, Algorithm 1).
+
+Every iteration freezes a behaviour copy of the policy, samples `contexts_per_iteration`
+contexts (first frame, proprio and instruction of collected episodes: fresh seeded placements,
+never the benchmark init states that evaluation uses), runs N imagined rollouts per context
+with Laplace-sampled actions until the reflector's R > eta or the horizon, computes RLOO
+advantages from R at t_end, and takes `ppo_epochs` passes of the clipped objective. Every
+`eval.every` iterations (and before the first) the policy is measured in the real simulator.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+import time
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig
+from tqdm import tqdm
+
+from worldenv_core.data.mcap_io import read_episode
+from worldenv_core.data.selection import MissingEpisodesError, collected_episodes
+from worldenv_core.envs.collection import PolicyEvalJob, evaluate_policy_task
+from worldenv_core.envs.imagined import ImaginedSimulator
+from worldenv_core.envs.tasks import resolve_task_ids
+from worldenv_core.kinematics.camera import PinholeCamera
+from worldenv_core.manifest import StageRun, config_hash
+from worldenv_core.models.checkpoint import read_config, save_model
+from worldenv_core.models.policy import load_policy
+from worldenv_core.models.reflector import check_eta, load_reflector
+from worldenv_core.models.text import InstructionEncoder
+from worldenv_core.parallel import run_jobs
+from worldenv_core.rl.imagined_env import Context, ImaginedEnv
+from worldenv_core.rl.loop import collect_rollouts, policy_param_groups, ppo_update
+from worldenv_core.stage import (ConfigError, positive_int, require_task, resolve_checkpoint, resolve_policy,
+                                 resolved, start)
+from worldenv_core.training import Checkpoints, pick_device, plot_history
+
+log = logging.getLogger("worldenv.post_train_loop")
+
+
+def validate(cfg: DictConfig) -> None:
+    require_task(cfg)
+    for key in ("rl.iterations", "rl.contexts_per_iteration", "rl.n_rollouts", "rl.ppo_epochs", "rl.minibatch",
+                "rl.horizon"):
+        positive_int(cfg, key)
+    positive_int(cfg, "eval.every", allow_zero=True)
+    positive_int(cfg, "eval.init_states")
+    if cfg.rl.n_rollouts < 2:
+        raise ConfigError(f"rl.n_rollouts must be at least 2 (the RLOO baseline averages the other N - 1), "
+                          f"got {cfg.rl.n_rollouts}")
+    try:
+        check_eta(cfg.rl.eta)
+    except ValueError as e:
+        raise ConfigError(f"rl.{e}") from None
+    if not cfg.rl.epsilon > 0:
+        raise ConfigError(f"rl.epsilon (the PPO clip) must be > 0, got {cfg.rl.epsilon}")
+    if not (cfg.rl.lr_backbone > 0 and cfg.rl.lr_heads > 0):
+        raise ConfigError("rl.lr_backbone and rl.lr_heads must be > 0")
+
+
+def contexts_from_episodes(paths: list[Path], camera: str) -> list[Context]:
+    out = []
+    for p in paths:
+        ep = read_episode(p, cameras=[camera])
+        out.append(Context(task_id=ep.meta.task_id, instruction=ep.meta.instruction,
+                           frame=torch.from_numpy(ep.images[camera][0]).permute(2, 0, 1).contiguous(),
+                           proprio=torch.from_numpy(ep.proprio[0])))
+    return out
+
+
+def build_env(cfg, worldsim_path: str, reflector_path: str, encoder, device) -> tuple[ImaginedEnv, str]:
+    meta = read_config(worldsim_path)["meta"]
+    contract = {"image_size": cfg.task.image_size, "chunk": cfg.task.chunk}
+    cameras = {int(t): PinholeCamera.from_dict(c) for t, c in meta["cameras"].items()}
+    sim = ImaginedSimulator.from_checkpoint(worldsim_path, min(cameras), cfg.rl.sampling_steps, device, expect=contract)
+    reflector, rmeta = load_reflector(reflector_path, expect={"image_size": cfg.task.image_size}, device=str(device))
+    if rmeta["camera"] != meta["camera"]:
+        raise ConfigError(f"the reflector watches {rmeta['camera']!r} but the world simulator imagines {meta['camera']!r}")
+    return ImaginedEnv(sim, cameras, reflector, encoder, cfg.rl.eta, cfg.rl.horizon), meta["camera"]
+
+
+def real_success(cfg, policy_path: str) -> float:
+    """Success in the real simulator (oracle termination) on the first benchmark init states."""
+    task = cfg.task
+    jobs = [PolicyEvalJob(policy_path=policy_path, suite=task.suite, task_id=t, init_ids=tuple(range(cfg.eval.init_states)),
+                          cameras=tuple(task.cameras), image_size=task.image_size, chunk=task.chunk,
+                          max_steps=task.max_steps, termination="oracle")
+            for t in resolve_task_ids(task.suite, task.task_ids)]
+    rows = [r for out in run_jobs(evaluate_policy_task, jobs, workers=cfg.eval.workers, desc="real-sim eval",
+                                  progress=cfg.progress, unit="task") for r in out["rows"]]
+    return sum(r["success"] for r in rows) / len(rows)
+
+
+def run(cfg: DictConfig) -> dict:
+    manifest = start(cfg, validate)
+    task, rl = cfg.task, cfg.rl
+    device = pick_device(cfg.device)
+    config = resolved(cfg)
+    work = Path(cfg.experiment_dir) / "post_train_loop" / config_hash(config)
+    tags = {"task": task.name, "scale": cfg.scale.name, "eta": float(rl.eta), "n_rollouts": int(rl.n_rollouts)}
+    with StageRun(manifest, "post_train_loop", tags, config) as stage:
+        policy_path = resolve_policy(cfg, stage)
+        worldsim_path = resolve_checkpoint(stage, cfg.worldsim, "train_worldsim", task.name, cfg.scale.name)
+        reflector_path = resolve_checkpoint(stage, cfg.reflector, "train_reflector", task.name, cfg.scale.name)
+        encoder = InstructionEncoder()
+        env, camera = build_env(cfg, worldsim_path, reflector_path, lambda s: encoder(s).to(device), device)
+        policy, pmeta = load_policy(policy_path, expect={"image_size": task.image_size, "chunk": task.chunk},
+                                    device=str(device))
+        if policy.cameras != [camera]:
+            raise ConfigError(f"the policy looks at {policy.cameras}, but the world simulator imagines only {camera!r}")
+        try:
+            paths = collected_episodes(manifest, stage, task.name, cfg.scale.name, cfg.expert_only)
+        except MissingEpisodesError as e:
+            raise ConfigError(str(e)) from None
+        contexts = contexts_from_episodes(paths, camera)
+        policy_cfg = read_config(policy_path)["model"]
+        optimizer = torch.optim.Adam(policy_param_groups(policy, rl.lr_backbone, rl.lr_heads))
+        ckpts = Checkpoints(work)
+        start_it, history = ckpts.restore(policy, {"ppo": optimizer})
+        meta = {**pmeta, "post_trained_from": policy_path, "worldsim": worldsim_path, "reflector": reflector_path}
+        log.info("post-training %s for %d iterations: %d contexts x %d rollouts each, eta %.2f, on %s; work dir %s",
+                 policy_path, rl.iterations, rl.contexts_per_iteration, rl.n_rollouts, rl.eta, device, work)
+        if start_it == 0 and cfg.eval.every:
+            history.append({"step": 0, "real_success": real_success(cfg, policy_path)})
+            log.info("SFT policy: real-simulator success %.3f", history[-1]["real_success"])
+        t0 = time.perf_counter()
+        bar = tqdm(range(start_it, rl.iterations), initial=start_it, total=rl.iterations, desc="post_train_loop",
+                   disable=not cfg.progress, dynamic_ncols=True)
+        for it in bar:
+            g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + it)  # rollouts, contexts, minibatches
+            picks = torch.randint(len(contexts), (rl.contexts_per_iteration,), generator=g).tolist()
+            behaviour = copy.deepcopy(policy).eval()  # Algorithm 1 line 3: the frozen behaviour policy
+            t_it = time.perf_counter()
+            batch = collect_rollouts(behaviour, env, [contexts[i] for i in picks], rl.n_rollouts,
+                                     lambda s: encoder(s).to(device), generator=g)
+            stats = ppo_update(policy, optimizer, batch, rl.ppo_epochs, rl.epsilon, rl.minibatch, generator=g)
+            entry = {"step": it + 1, "mean_reward": float(batch.rewards.mean()),
+                     "reflector_success_rate": float(batch.by_reflector.float().mean()),
+                     "episode_length": float(batch.t_end.float().mean()), "mean_beta": batch.beta_mean,
+                     **stats, "seconds": time.perf_counter() - t_it}
+            done = it + 1
+            path = ckpts.save(done, policy, policy_cfg, {**meta, "iteration": done}, {"ppo": optimizer}, history + [entry])
+            if cfg.eval.every and (done % cfg.eval.every == 0 or done == rl.iterations):
+                entry["real_success"] = real_success(cfg, str(path))
+                ckpts.save(done, policy, policy_cfg, {**meta, "iteration": done}, {"ppo": optimizer}, history + [entry])
+            history.append(entry)
+            bar.set_postfix(reward=f"{entry['mean_reward']:.3f}", stop=f"{entry['reflector_success_rate']:.2f}",
+                            kl=f"{entry['approx_kl']:.4f}")
+            log.info("iteration %d: %s", done, json.dumps({k: round(v, 4) for k, v in entry.items()}))
+        bar.close()
+        final = save_model(work / "policy", policy.cpu(), policy_cfg, {**meta, "iteration": rl.iterations})
+        for f in sorted(final.iterdir()):
+            stage.add_output(f, kind="checkpoint")
+        stage.add_output(plot_history(history, work / "training.png", f"post_train_loop {task.name}"), kind="plot")
+        evals = [h for h in history if "real_success" in h]
+        stage.metrics.update({"iterations": rl.iterations, "train_wall_s": round(time.perf_counter() - t0, 1),
+                              "device": str(device), "final_mean_reward": history[-1].get("mean_reward"),
+                              "real_success": {str(h["step"]): h["real_success"] for h in evals}})
+        log.info("post-trained policy saved to %s; metrics %s", final, json.dumps(stage.metrics))
+    return stage.metrics
