@@ -1,0 +1,59 @@
+"""post_train_loop on the tiny task: SFT policy, world simulator and reflector from the manifest,
+LOOP iterations in imagination, real-simulator evaluation, resume, and bad settings."""
+import pytest
+
+from stages.post_train_loop.run import run as post_train_loop
+from stages.train_policy.run import run as train_policy
+from stages.train_reflector.run import run as train_reflector
+from stages.train_worldsim.run import run as train_worldsim
+from worldenv_core.manifest import Manifest
+from worldenv_core.models.policy import load_policy
+from worldenv_core.stage import ConfigError, compose_config
+
+pytestmark = [pytest.mark.sim, pytest.mark.slow]
+LOOP = ["expert_only=true", "rl.iterations=2", "rl.contexts_per_iteration=1", "rl.n_rollouts=2", "rl.horizon=16",
+        "rl.minibatch=2", "eval.every=2", "eval.init_states=1", "eval.workers=1", "progress=false"]
+
+
+def cfg(stage, exp, *overrides):
+    return compose_config(stage, ["+task=tiny", "scale=tiny", f"experiment_dir={exp}", *overrides])
+
+
+@pytest.fixture(scope="module")
+def trained(demo_experiment):
+    exp = demo_experiment
+    train_policy(cfg("train_policy", exp, "train.steps=10", "scale_head.steps=4", "demos_per_task=1",
+                     "policy.hidden=32", "policy.backbone.widths=[8,8,8,8]", "policy.backbone.keypoints=4"))
+    train_worldsim(cfg("train_worldsim", exp, "expert_only=true", "ae.steps=4", "flow.steps=4", "ae.batch_size=2",
+                       "flow.batch_size=2", "holdout_every=2", "worldsim.ae_widths=[8,16]", "worldsim.width=16",
+                       "worldsim.map_channels=4", "fidelity.horizons=[8]", "fidelity.starts_per_episode=1",
+                       "fidelity.videos=0", "worldsim.sampling_steps=1"))
+    train_reflector(cfg("train_reflector", exp, "expert_only=true", "train.steps=2", "train.batch_size=2",
+                        "holdout_every=2", "reflector.d_model=16", "reflector.layers=1", "reflector.heads=2",
+                        "reflector.frame_encoder.widths=[8,16]", "reflector.frame_encoder.keypoints=4", "plots=1",
+                        "imagined.enabled=false"))
+    return exp, post_train_loop(cfg("post_train_loop", exp, *LOOP))
+
+
+def test_loop_records_a_post_trained_policy_with_its_real_success_curve(trained):
+    exp, metrics = trained
+    m = Manifest(exp)
+    rec = m.latest("post_train_loop", task="tiny", eta=0.5, n_rollouts=2)
+    used = {m.get(i).stage for i in rec.inputs}
+    assert {"train_policy", "train_worldsim", "train_reflector", "collect"} <= used
+    files = {p.name: p for p in m.resolve(rec)}
+    assert {"model.safetensors", "config.json", "training.png"} <= set(files)
+    policy, meta = load_policy(files["model.safetensors"].parent, expect={"chunk": 8, "image_size": 64})
+    assert meta["iteration"] == 2 and meta["post_trained_from"]
+    assert set(metrics["real_success"]) == {"0", "2"}  # iteration 0 is the SFT policy
+    assert all(0.0 <= v <= 1.0 for v in metrics["real_success"].values())
+
+
+def test_loop_resumes_and_rejects_bad_settings(trained):
+    exp, _ = trained
+    again = post_train_loop(cfg("post_train_loop", exp, *LOOP))
+    assert again["train_wall_s"] < 5  # resumed at the end: nothing left to do
+    for override, match in (("rl.n_rollouts=1", "at least 2"), ("rl.eta=1.5", r"eta .* must be in \[0, 1\]"),
+                            ("rl.epsilon=0", "epsilon .* must be > 0")):
+        with pytest.raises(ConfigError, match=match):
+            post_train_loop(cfg("post_train_loop", exp, *LOOP, override))
