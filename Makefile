@@ -52,9 +52,9 @@ pipeline: setup
 	$(PY) -m stages.collect $(STAGE_ARGS) source=policy post_success_steps=32
 	$(PY) -m stages.train_worldsim $(STAGE_ARGS)
 	$(PY) -m stages.train_reflector $(STAGE_ARGS)
-	$(PY) -m stages.evaluate $(STAGE_ARGS) termination=oracle
-	$(PY) -m stages.evaluate $(STAGE_ARGS) termination=fixed
-	$(PY) -m stages.evaluate $(STAGE_ARGS) termination=reflector
+	$(PY) -m stages.post_train_loop $(STAGE_ARGS)
+	for policy in sft post_trained; do for term in oracle fixed reflector; do \
+	  $(PY) -m stages.evaluate $(STAGE_ARGS) policy=$$policy termination=$$term || exit 1; done; done
 
 # The same pipeline on the tiny task and scale: minutes, proves the plumbing.
 smoke:

@@ -57,3 +57,21 @@ def test_loop_resumes_and_rejects_bad_settings(trained):
                             ("rl.epsilon=0", "epsilon .* must be > 0")):
         with pytest.raises(ConfigError, match=match):
             post_train_loop(cfg("post_train_loop", exp, *LOOP, override))
+
+
+def test_multirun_sweep_over_eta_on_the_basic_launcher(trained):
+    """`-m rl.eta=...` runs one post-training per value, each recorded with its own tags."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    exp, _ = trained
+    overrides = [o for o in LOOP if not o.startswith(("rl.iterations", "eval.every"))]
+    cmd = [sys.executable, "-m", "stages.post_train_loop", "-m", "+task=tiny", "scale=tiny", f"experiment_dir={exp}",
+           *overrides, "rl.iterations=1", "eval.every=0", "rl.eta=0.3,0.7"]
+    done = subprocess.run(cmd, cwd=Path(__file__).resolve().parents[2], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    m = Manifest(exp)
+    assert {r.tags["eta"] for r in m.find("post_train_loop", task="tiny", n_rollouts=2)} >= {0.3, 0.7}
+    sweep = sorted((Path(exp) / "multirun").glob("post_train_loop-*/*"))
+    assert [p.name for p in sweep if p.is_dir()] == ["0_eta0.3_n2", "1_eta0.7_n2"]
