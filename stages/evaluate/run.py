@@ -17,6 +17,7 @@ from worldenv_core.manifest import StageRun
 from worldenv_core.models.checkpoint import read_config
 from worldenv_core.models.reflector import check_eta
 from worldenv_core.parallel import run_jobs
+from worldenv_core.report import write_report
 from worldenv_core.rl.termination import StopOutcome, termination_metrics
 from worldenv_core.stage import (POLICY_SOURCES, ConfigError, positive_int, require_task, resolve_checkpoint,
                                  resolve_policy, resolved, start)
@@ -95,6 +96,8 @@ def run(cfg: DictConfig) -> dict:
             stage.add_output(path, kind="video")
         stage.metrics.update({k: v for k, v in summary.items() if k != "per_task"})
         print(markdown(summary, task.suite))
+    report = write_report(manifest.root, task.name)  # the experiment's report, now with this evaluation
+    log.info("experiment report: %s", report)
     return summary
 
 

@@ -72,5 +72,7 @@ def test_evaluate_with_reflector_termination(trained, tmp_path):
     (ep,) = json.loads((Path(out["report_dir"]) / "episodes.json").read_text())
     assert ep["stop_step"] == ep["steps"] == 0  # eta = 0: R > 0 at the very first check stops the episode
     assert out["reflector_termination"]["episodes"] == 1
+    report = (Path(exp) / "report" / "report.md").read_text()  # the experiment report includes this evaluation
+    assert "sft / reflector" in report and "## Reflector" in report and (Path(exp) / "report" / "success.png").exists()
     with pytest.raises(ConfigError, match=r"eta .* must be in \[0, 1\]"):
         evaluate(cfg("evaluate", exp, "termination=reflector", "eta=-1", "init_states=1"))

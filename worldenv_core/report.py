@@ -1,0 +1,145 @@
+"""One report per experiment, rebuilt from its manifest after every evaluation:
+`<experiment>/report/report.md` + `success.png`.
+
+* success per task in the real simulator, SFT vs post-trained, under oracle / fixed / reflector
+  termination (the paper's Tables 1 and 3), from the newest evaluate record of each pair;
+* ablations where they were run (post-training on a world model without extra data; the
+  reflector without a reward head), each marked by its record's tags;
+* world-model fidelity and reflector accuracy from their stages' reports;
+* post-training curve (real success vs iteration) and wall time per stage.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+from worldenv_core.manifest import Manifest, StageRecord
+
+log = logging.getLogger(__name__)
+TERMINATIONS = ("oracle", "fixed", "reflector")
+POLICIES = ("sft", "post_trained")
+
+
+def _newest(records: list[StageRecord], **tags) -> StageRecord | None:
+    found = [r for r in records if all(r.tags.get(k) == v for k, v in tags.items())]
+    return found[-1] if found else None
+
+
+def _report_json(manifest: Manifest, record: StageRecord | None, name: str) -> dict | None:
+    if record is None:
+        return None
+    for art in record.files("report"):
+        if Path(art.path).name == name:
+            path = manifest.root / art.path
+            return json.loads(path.read_text()) if path.exists() else None
+    return None
+
+
+def success_table(manifest: Manifest, task: str) -> tuple[list[str], dict]:
+    evals = manifest.find("evaluate", task=task)
+    cells = {}  # (policy, termination) -> summary
+    for policy in POLICIES:
+        for term in TERMINATIONS:
+            rec = _newest(evals, policy=policy, termination=term)
+            if rec is None and policy == "sft":  # records from before the policy tag existed
+                rec = _newest([r for r in evals if "policy" not in r.tags], termination=term)
+            summary = _report_json(manifest, rec, "results.json")
+            if summary:
+                cells[(policy, term)] = summary
+    if not cells:
+        return ["No evaluation yet: `python -m stages.evaluate +task=... termination=oracle`."], cells
+    cols = [k for k in ((p, t) for t in TERMINATIONS for p in POLICIES) if k in cells]
+    tasks = sorted({(r["task_id"], r["task"]) for s in cells.values() for r in s["per_task"]})
+    lines = ["| task | " + " | ".join(f"{p} / {t}" for p, t in cols) + " |", "|---|" + "---|" * len(cols)]
+    for tid, name in tasks:
+        row = []
+        for key in cols:
+            r = next((r for r in cells[key]["per_task"] if r["task_id"] == tid), None)
+            row.append(f"{100 * r['success_rate']:.0f} %" if r else "")
+        lines.append(f"| {tid} {name} | " + " | ".join(row) + " |")
+    lines.append("| **all** | " + " | ".join(f"**{100 * cells[k]['success_rate']:.1f} %**" for k in cols) + " |")
+    n = {cells[k]["init_states"] for k in cols}
+    lines += ["", f"(first {'/'.join(map(str, sorted(n)))} benchmark init states per task)"]
+    refl = cells.get(("sft", "reflector")) or cells.get(("post_trained", "reflector"))
+    if refl and "reflector_termination" in refl:
+        t = refl["reflector_termination"]
+        lines += [f"Reflector stops in the real simulator (eta {refl['eta']}): termination F1 {t['f1']:.3f}, "
+                  f"median timing error {t['timing_error_median']:.0f} steps, {t['false_stops']} false stops, "
+                  f"{t['missed_successes']} missed successes."]
+    return lines, cells
+
+
+def write_report(experiment_dir: str | Path, task: str) -> Path:
+    manifest = Manifest(experiment_dir)
+    out = manifest.root / "report"
+    out.mkdir(parents=True, exist_ok=True)
+    lines = [f"# {task}: experiment report", "", "## Success in the real simulator", ""]
+    table, cells = success_table(manifest, task)
+    lines += table
+    if cells:
+        _plot_success(cells, out / "success.png")
+        lines += ["", "![success](success.png)"]
+
+    loop = manifest.find("post_train_loop", task=task)
+    if loop:
+        lines += ["", "## Post-training (LOOP in imagination)", "", "| eta | N | real success by iteration | wall s |",
+                  "|---|---|---|---|"]
+        for r in loop[-6:]:
+            curve = ", ".join(f"{k}: {100 * v:.0f} %" for k, v in r.metrics.get("real_success", {}).items())
+            lines.append(f"| {r.tags.get('eta')} | {r.tags.get('n_rollouts')} | {curve} | {r.wall_time_s:.0f} |")
+
+    ws = _newest(manifest.find("train_worldsim", task=task))
+    fid = _report_json(manifest, ws, "fidelity.json")
+    if fid:
+        lines += ["", f"## World simulator ({ws.tags.get('data')} data)", "",
+                  "| horizon | PSNR model | PSNR copy-last | SSIM model | SSIM copy-last |", "|---|---|---|---|---|"]
+        lines += [f"| {h} | {v['model_psnr']:.2f} | {v['copy_psnr']:.2f} | {v['model_ssim']:.3f} | {v['copy_ssim']:.3f} |"
+                  for h, v in fid["fidelity"].items()]
+    refl = _newest(manifest.find("train_reflector", task=task))
+    acc = _report_json(manifest, refl, "reflector_eval.json")
+    if acc:
+        lines += ["", f"## Reflector (eta {acc['eta']}, {acc['held_out_episodes']} held-out episodes)", "",
+                  "| video | step accuracy | step F1 | step AUROC | termination F1 |", "|---|---|---|---|---|"]
+        for kind in ("real", "imagined"):
+            if kind in acc:
+                p, t = acc[kind]["per_step"], acc[kind]["termination"]["all"]
+                lines.append(f"| {kind} | {p['accuracy']:.3f} | {p['f1']:.3f} | {p['auroc']:.3f} | {t['f1']:.3f} |")
+
+    lines += ["", "## Wall time per stage (newest run of each)", "", "| stage | tags | wall s |", "|---|---|---|"]
+    seen = {}
+    for r in manifest.records():
+        if r.tags.get("task") == task:
+            seen[(r.stage, json.dumps(r.tags, sort_keys=True))] = r
+    lines += [f"| {r.stage} | {', '.join(f'{k}={v}' for k, v in r.tags.items() if k != 'task')} | {r.wall_time_s:.0f} |"
+              for r in seen.values()]
+    path = out / "report.md"
+    tmp = path.with_suffix(".md.tmp")
+    tmp.write_text("\n".join(lines) + "\n")
+    tmp.replace(path)
+    return path
+
+
+def _plot_success(cells: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    keys = [k for k in ((p, t) for t in TERMINATIONS for p in POLICIES) if k in cells]
+    tasks = sorted({r["task_id"] for s in cells.values() for r in s["per_task"]})
+    fig, ax = plt.subplots(figsize=(max(6, len(tasks) * 0.9), 3.2))
+    width = 0.8 / len(keys)
+    for i, key in enumerate(keys):
+        rates = {r["task_id"]: r["success_rate"] for r in cells[key]["per_task"]}
+        ax.bar(np.arange(len(tasks)) + i * width, [100 * rates.get(t, 0) for t in tasks], width, label=" / ".join(key))
+    ax.set_xticks(np.arange(len(tasks)) + 0.4 - width / 2, [str(t) for t in tasks])
+    ax.set_xlabel("task")
+    ax.set_ylabel("success %")
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path.with_suffix(".tmp.png"))
+    plt.close(fig)
+    path.with_suffix(".tmp.png").replace(path)
