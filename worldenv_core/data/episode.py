@@ -25,7 +25,7 @@ class EpisodeMeta:
     init_state_index: int  # index into the benchmark's fixed init states, -1 when sampled from `seed`
     seed: int
     source: str  # "expert" | "policy" | "import"
-    success: bool
+    success: bool  # the oracle fired at some frame (per-frame flags in Episode.success)
     attempts: int = 1
     fps: float = 20.0
     cameras: list[str] = field(default_factory=list)

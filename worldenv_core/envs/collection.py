@@ -51,7 +51,7 @@ def collect_expert_episode(job: ExpertEpisodeJob) -> dict:
         steps_tried += traj.length
         if traj.error:
             errors.append(traj.error)
-        if not traj.success:
+        if not traj.reached_success:  # with post_success_steps the expert may undo it afterwards: still a demo
             continue
         t_render = time.perf_counter()
         episode = to_episode(

@@ -56,6 +56,11 @@ class Trajectory:
         return self.error is None and bool(self.frames) and self.frames[-1].success
 
     @property
+    def reached_success(self) -> bool:
+        """The oracle fired at some frame (what a demo must show; frames after it may undo it)."""
+        return self.error is None and any(f.success for f in self.frames)
+
+    @property
     def length(self) -> int:
         return len(self.actions)
 
@@ -123,7 +128,7 @@ def to_episode(env: LiberoEnv, traj: Trajectory, **meta):
     return Episode(
         meta=EpisodeMeta(
             suite=env.task.suite, task_id=env.task.task_id, task_name=env.task.name,
-            instruction=env.task.instruction, success=traj.success, **meta,
+            instruction=env.task.instruction, success=traj.reached_success, **meta,
         ),
         images=images,
         proprio=np.stack([f.proprio for f in traj.frames]).astype(np.float32),
