@@ -54,7 +54,7 @@ pipeline: setup
 	$(PY) -m stages.train_reflector $(STAGE_ARGS)
 	$(PY) -m stages.post_train_loop $(STAGE_ARGS)
 	for policy in sft post_trained; do for term in oracle fixed reflector; do \
-	  $(PY) -m stages.evaluate $(STAGE_ARGS) policy=$$policy termination=$$term || exit 1; done; done
+	  $(PY) -m stages.evaluate $(STAGE_ARGS) policy_from=$$policy termination=$$term || exit 1; done; done
 
 # The same pipeline on the tiny task and scale: minutes, proves the plumbing.
 smoke:

@@ -117,8 +117,9 @@ def resolve_checkpoint(stage_run, ref, producer: str, task: str, scale: str) -> 
 
 
 def resolve_policy(cfg: DictConfig, stage_run) -> str:
-    """`policy=`: sft (the latest train_policy; also null), post_trained (the latest
-    post_train_loop), a checkpoint folder, or a record id."""
-    ref = cfg.policy
+    """`policy_from=`: sft (the latest train_policy; also null), post_trained (the latest
+    post_train_loop), a checkpoint folder, or a record id. (Not `policy=`: that name is the
+    policy-architecture config group, which Hydra would try to select.)"""
+    ref = cfg.policy_from
     producer = POLICY_SOURCES.get(ref, "train_policy")
     return resolve_checkpoint(stage_run, None if ref in POLICY_SOURCES else ref, producer, cfg.task.name, cfg.scale.name)

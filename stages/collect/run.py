@@ -71,7 +71,7 @@ def episode_dir(cfg: DictConfig) -> Path:
     if cfg.source == "expert":  # episodes of a changed expert are other episodes: never mix them
         defining["expert_code"] = expert_code_hash()
     if cfg.source == "policy":
-        defining.update(policy=str(cfg.policy), noise_scale=cfg.noise_scale, stop_on_success=cfg.stop_on_success)
+        defining.update(policy=str(cfg.policy_from), noise_scale=cfg.noise_scale, stop_on_success=cfg.stop_on_success)
     if cfg.source == "lerobot":
         defining["import"] = [str(cfg.lerobot_import.root), cfg.lerobot_import.repo_id, cfg.lerobot_import.max_episodes]
     return Path(cfg.data_dir) / task.name / f"{cfg.source}-{config_hash(defining)[:8]}"

@@ -61,7 +61,7 @@ def run(cfg: DictConfig) -> dict:
                else manifest.root / "evaluate" / cfg.termination)
     run_dir.mkdir(parents=True, exist_ok=True)
     tags = {"task": task.name, "scale": cfg.scale.name, "termination": cfg.termination,
-            "policy": cfg.policy if cfg.policy in POLICY_SOURCES else "custom"}
+            "policy": cfg.policy_from if cfg.policy_from in POLICY_SOURCES else "custom"}
     with StageRun(manifest, "evaluate", tags, resolved(cfg)) as stage:
         policy_path = resolve_policy(cfg, stage)
         reflector_path = resolve_reflector(cfg, stage) if cfg.termination == "reflector" else None

@@ -75,3 +75,14 @@ def test_multirun_sweep_over_eta_on_the_basic_launcher(trained):
     assert {r.tags["eta"] for r in m.find("post_train_loop", task="tiny", n_rollouts=2)} >= {0.3, 0.7}
     sweep = sorted((Path(exp) / "multirun").glob("post_train_loop-*/*"))
     assert [p.name for p in sweep if p.is_dir()] == ["0_eta0.3_n2", "1_eta0.7_n2"]
+
+
+def test_evaluate_the_post_trained_policy_by_name(trained):
+    from stages.evaluate.run import run as evaluate
+
+    exp, _ = trained
+    out = evaluate(cfg("evaluate", exp, "policy_from=post_trained", "termination=oracle", "init_states=1", "workers=1",
+                       "progress=false"))
+    rec = Manifest(exp).latest("post_train_loop", task="tiny")
+    assert out["policy"].endswith("policy") and str(rec.files("checkpoint")[0].path).split("/")[-2] == "policy"
+    assert Manifest(exp).latest("evaluate", task="tiny", policy="post_trained").metrics["episodes"] == 1
