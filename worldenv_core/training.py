@@ -131,3 +131,25 @@ def random_shift(images: torch.Tensor, pad: int, generator: torch.Generator | No
     out = padded.gather(2, idx_r)
     idx_c = cols[:, None, None, :].expand(b, c, h, w)
     return out.gather(3, idx_c).to(images.dtype)
+
+
+class RunningMeans:
+    """Per-step values (losses, diagnostics) averaged into one `history` entry every `every`
+    steps and at the last, and shown on the progress bar."""
+
+    def __init__(self, history: list[dict], every: int, bar=None):
+        self.history, self.every, self.bar = history, int(every), bar
+        self.values: dict[str, list[float]] = {}
+
+    def add(self, **values: float) -> None:
+        for k, v in values.items():
+            self.values.setdefault(k, []).append(float(v))
+
+    def end_step(self, done: int, total: int) -> None:
+        if done % self.every and done != total:
+            return
+        entry = {"step": done, **{k: sum(v) / len(v) for k, v in self.values.items()}}
+        self.history.append(entry)
+        self.values.clear()
+        if self.bar is not None:
+            self.bar.set_postfix({k: f"{v:.4f}" for k, v in entry.items() if k != "step"})

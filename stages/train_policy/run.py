@@ -24,7 +24,7 @@ from worldenv_core.models.checkpoint import save_model
 from worldenv_core.models.text import InstructionEncoder
 from worldenv_core.rl.laplace import laplace_nll
 from worldenv_core.stage import ConfigError, positive_int, require_task, resolved, start
-from worldenv_core.training import Checkpoints, batches, pick_device, plot_history, random_shift
+from worldenv_core.training import Checkpoints, RunningMeans, batches, pick_device, plot_history, random_shift
 
 log = logging.getLogger("worldenv.train_policy")
 
@@ -93,8 +93,9 @@ def run(cfg: DictConfig) -> dict:
                  len(paths), len(data), n_action, cfg.scale_head.steps, device, work)
         action_batches = batches(data, cfg.train.batch_size, cfg.seed, start_step=min(step, n_action))
         scale_batches = batches(data, cfg.scale_head.batch_size, cfg.seed + 1, start_step=max(0, step - n_action))
-        t0, running = time.perf_counter(), defaultdict(list)
+        t0 = time.perf_counter()
         bar = tqdm(range(step, total), initial=step, total=total, desc="train_policy", dynamic_ncols=True)
+        running = RunningMeans(history, cfg.train.log_every, bar)
         for step in bar:
             model.train()
             if step < n_action:
@@ -108,7 +109,7 @@ def run(cfg: DictConfig) -> dict:
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
                 opt_action.step()
-                running["l1"].append(loss.item())
+                running.add(l1=loss.item())
             else:
                 batch = next(scale_batches)
                 images, proprio, lang = _batch_inputs(model, batch, encoder, device)
@@ -123,14 +124,9 @@ def run(cfg: DictConfig) -> dict:
                 opt_scale.zero_grad(set_to_none=True)
                 loss.backward()
                 opt_scale.step()
-                running["nll"].append(loss.item())
-                running["beta"].append((beta * valid).sum().item() / (valid.sum().item() * mu.shape[-1]))
+                running.add(nll=loss.item(), beta=(beta * valid).sum().item() / (valid.sum().item() * mu.shape[-1]))
             done = step + 1
-            if done % cfg.train.log_every == 0 or done == total:
-                entry = {"step": done, **{k: sum(v) / len(v) for k, v in running.items()}}
-                history.append(entry)
-                running.clear()
-                bar.set_postfix({k: f"{v:.4f}" for k, v in entry.items() if k != "step"})
+            running.end_step(done, total)
             if done % cfg.train.checkpoint_every == 0 or done == total:
                 ckpts.save(done, model, model_cfg, meta, optimizers, history)
         bar.close()

@@ -21,8 +21,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from worldenv_core.data.mcap_io import read_episode
-from worldenv_core.data.selection import MissingEpisodesError, collected_episodes, episode_key, holdout_split
+from worldenv_core.data.selection import episode_key, load_split
 from worldenv_core.manifest import ArtefactError, StageRun, config_hash
 from worldenv_core.metrics import binary_metrics
 from worldenv_core.models.checkpoint import save_model
@@ -31,7 +30,7 @@ from worldenv_core.models.reflector_data import PrefixSampler
 from worldenv_core.models.text import InstructionEncoder
 from worldenv_core.rl.termination import StopOutcome, check_steps, first_stop, first_success, success_labels, termination_metrics
 from worldenv_core.stage import ConfigError, positive_int, require_task, resolved, start
-from worldenv_core.training import Checkpoints, pick_device, plot_history, random_shift
+from worldenv_core.training import Checkpoints, RunningMeans, pick_device, plot_history, random_shift
 
 log = logging.getLogger("worldenv.train_reflector")
 ETA_SWEEP = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
@@ -62,13 +61,7 @@ def run(cfg: DictConfig) -> dict:
     work = Path(cfg.experiment_dir) / "train_reflector" / config_hash(config)
     tags = {"task": task.name, "scale": cfg.scale.name, "data": "expert" if cfg.expert_only else "expert+policy"}
     with StageRun(manifest, "train_reflector", tags, config) as stage:
-        try:
-            paths = collected_episodes(manifest, stage, task.name, cfg.scale.name, cfg.expert_only)
-        except MissingEpisodesError as e:
-            raise ConfigError(str(e)) from None
-        train_paths, held = holdout_split(paths, cfg.holdout_every)
-        episodes = [read_episode(p, cameras=[cfg.camera]) for p in train_paths]
-        held_eps = [read_episode(p, cameras=[cfg.camera]) for p in held]
+        _, held, episodes, held_eps = load_split(manifest, stage, cfg)
         try:
             sampler = PrefixSampler(episodes, cfg.camera, cfg.frame_stride, cfg.reflector.max_frames,
                                     cfg.train.hard_negative_fraction, cfg.train.hard_window)
@@ -123,8 +116,9 @@ def train(cfg, model, model_cfg: dict, meta: dict, sampler: PrefixSampler, encod
                             weight_decay=cfg.train.weight_decay)
     ckpts = Checkpoints(work)
     step, history = ckpts.restore(model, {"reflector": opt})
-    total, running = cfg.train.steps, defaultdict(list)
+    total = cfg.train.steps
     bar = tqdm(range(step, total), initial=step, total=total, desc="train_reflector", dynamic_ncols=True)
+    running = RunningMeans(history, cfg.train.log_every, bar)
     for step in bar:
         model.train()
         b = sampler.batch(cfg.train.batch_size, seed=cfg.seed * 1_000_003 + step)  # by step: resumes exactly
@@ -137,14 +131,9 @@ def train(cfg, model, model_cfg: dict, meta: dict, sampler: PrefixSampler, encod
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
         opt.step()
-        running["bce"].append(loss.item())
-        running["batch_accuracy"].append(((logits > 0).float() == label).float().mean().item())
+        running.add(bce=loss.item(), batch_accuracy=((logits > 0).float() == label).float().mean().item())
         done = step + 1
-        if done % cfg.train.log_every == 0 or done == total:
-            entry = {"step": done, **{k: sum(v) / len(v) for k, v in running.items()}}
-            history.append(entry)
-            running.clear()
-            bar.set_postfix({k: f"{v:.3f}" for k, v in entry.items() if k != "step"})
+        running.end_step(done, total)
         if done % cfg.train.checkpoint_every == 0 or done == total:
             ckpts.save(done, model, model_cfg, meta, {"reflector": opt}, history)
     bar.close()

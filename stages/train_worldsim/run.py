@@ -20,17 +20,16 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.envs.imagined import ImaginedSimulator, open_loop_fidelity
 from worldenv_core.kinematics.action_map import draw_action_maps_per_rollout
 from worldenv_core.kinematics.camera import PinholeCamera
 from worldenv_core.kinematics.next_state import NextStateModel, state_errors
-from worldenv_core.data.selection import MissingEpisodesError, collected_episodes, episode_key, holdout_split
+from worldenv_core.data.selection import episode_key, load_split
 from worldenv_core.manifest import StageRun, config_hash
 from worldenv_core.models.checkpoint import save_model
 from worldenv_core.models.worldsim_data import LatentChunks, encode_episode_frames
 from worldenv_core.stage import ConfigError, positive_int, require_task, resolved, start
-from worldenv_core.training import Checkpoints, batches, pick_device, plot_history
+from worldenv_core.training import Checkpoints, RunningMeans, batches, pick_device, plot_history
 from worldenv_core.viz import montage_video
 
 log = logging.getLogger("worldenv.train_worldsim")
@@ -72,15 +71,7 @@ def run(cfg: DictConfig) -> dict:
     work = Path(cfg.experiment_dir) / "train_worldsim" / config_hash(config)
     tags = {"task": task.name, "scale": cfg.scale.name, "data": "expert" if cfg.expert_only else "expert+policy"}
     with StageRun(manifest, "train_worldsim", tags, config) as stage:
-        try:
-            paths = collected_episodes(manifest, stage, task.name, cfg.scale.name, cfg.expert_only)
-        except MissingEpisodesError as e:
-            raise ConfigError(str(e)) from None
-        train_paths, held = holdout_split(paths, cfg.holdout_every)
-        if not train_paths:
-            raise ConfigError(f"only {len(paths)} episodes: none left for training after holding out {len(held)}")
-        episodes = [read_episode(p, cameras=[cfg.camera]) for p in train_paths]
-        held_eps = [read_episode(p, cameras=[cfg.camera]) for p in held]
+        _, held, episodes, held_eps = load_split(manifest, stage, cfg)
         cameras = task_cameras(cfg, sorted({ep.meta.task_id for ep in episodes + held_eps}))
         kinematics = NextStateModel.fit(episodes)
         log.info("kinematics fitted on %d episodes: %s", len(episodes), kinematics)
@@ -106,8 +97,9 @@ def run(cfg: DictConfig) -> dict:
         # every training frame, decoded once (the episodes are in memory already)
         frames = torch.cat([torch.from_numpy(ep.images[cfg.camera]) for ep in episodes]) if step < n_ae else None
         chunks = flow_batches = None
-        t0, running = time.perf_counter(), defaultdict(list)
+        t0 = time.perf_counter()
         bar = tqdm(range(step, total), initial=step, total=total, desc="train_worldsim", dynamic_ncols=True)
+        running = RunningMeans(history, cfg.log_every, bar)
         for step in bar:
             model.train()
             if step < n_ae:
@@ -120,7 +112,7 @@ def run(cfg: DictConfig) -> dict:
                 opt_ae.zero_grad(set_to_none=True)
                 loss.backward()
                 opt_ae.step()
-                running["ae"].append(loss.item())
+                running.add(ae=loss.item())
             else:
                 if chunks is None:  # entering (or resuming in) phase 2: encode every frame once
                     frames = None
@@ -143,13 +135,9 @@ def run(cfg: DictConfig) -> dict:
                         pe.lerp_(p, 1 - cfg.flow.ema)
                     for be, bm in zip(ema.buffers(), model.buffers()):
                         be.copy_(bm)
-                running["flow"].append(loss.item())
+                running.add(flow=loss.item())
             done = step + 1
-            if done % cfg.log_every == 0 or done == total:
-                entry = {"step": done, **{k: sum(v) / len(v) for k, v in running.items()}}
-                history.append(entry)
-                running.clear()
-                bar.set_postfix({k: f"{v:.4f}" for k, v in entry.items() if k != "step"})
+            running.end_step(done, total)
             if done % cfg.checkpoint_every == 0 or done == total:
                 ckpts.save(done, model, model_cfg, meta, optimizers, history, extra={"ema": ema.state_dict()})
         bar.close()
