@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import logging
+from contextlib import ExitStack
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +25,8 @@ from worldenv_core.stage import (POLICY_SOURCES, ConfigError, positive_int, requ
 from worldenv_core.viz import montage_video
 
 log = logging.getLogger("worldenv.evaluate")
-TERMINATIONS = ("oracle", "fixed", "reflector")
+MODES = ("oracle", "fixed", "reflector")
+TERMINATIONS = (*MODES, "all")
 JOB_SIZE = 10  # init states per job: small enough to spread a task over workers
 
 
@@ -55,16 +57,24 @@ def resolve_reflector(cfg: DictConfig, stage: StageRun) -> str:
 
 
 def run(cfg: DictConfig) -> dict:
+    """One evaluation; termination=all runs each episode once to the horizon with the reflector
+    watching and records oracle, fixed and reflector results (identical to three separate runs,
+    as policy and simulator are deterministic) for about the cost of one. Returns the summary of
+    the requested mode, or {mode: summary} for all."""
     manifest = start(cfg, validate)
     task = cfg.task
     run_dir = (Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized()
                else manifest.root / "evaluate" / cfg.termination)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    tags = {"task": task.name, "scale": cfg.scale.name, "termination": cfg.termination,
-            "policy": cfg.policy_from if cfg.policy_from in POLICY_SOURCES else "custom"}
-    with StageRun(manifest, "evaluate", tags, resolved(cfg)) as stage:
-        policy_path = resolve_policy(cfg, stage)
-        reflector_path = resolve_reflector(cfg, stage) if cfg.termination == "reflector" else None
+    modes = MODES if cfg.termination == "all" else (cfg.termination,)
+    policy_tag = cfg.policy_from if cfg.policy_from in POLICY_SOURCES else "custom"
+    summaries = {}
+    with ExitStack() as records:  # one manifest record per mode, all timed over the shared rollouts
+        stages = {m: records.enter_context(StageRun(manifest, "evaluate", {
+            "task": task.name, "scale": cfg.scale.name, "termination": m, "policy": policy_tag}, resolved(cfg)))
+            for m in modes}
+        policy_path = [resolve_policy(cfg, s) for s in stages.values()][0]
+        reflector_path = ([resolve_reflector(cfg, s) for s in stages.values()][0]
+                          if cfg.termination in ("reflector", "all") else None)
         inits = list(range(cfg.init_states))
         jobs = [PolicyEvalJob(policy_path=policy_path, suite=task.suite, task_id=t, init_ids=tuple(inits[i:i + JOB_SIZE]),
                               cameras=tuple(task.cameras), image_size=task.image_size, chunk=task.chunk,
@@ -79,25 +89,37 @@ def run(cfg: DictConfig) -> dict:
             rows += out["rows"]
             for i, frames in out["videos"].items():
                 videos[(out["rows"][0]["task_id"], i)] = frames
-        summary = summarise(rows)
-        summary.update(policy=policy_path, termination=cfg.termination, init_states=cfg.init_states,
-                       report_dir=str(run_dir))
-        if reflector_path:
-            summary.update(reflector=reflector_path, eta=float(cfg.eta), reflector_termination=termination_metrics(
-                [StopOutcome(r["first_success_step"], r["stop_step"]) for r in rows if r["error"] is None]))
-        (run_dir / "episodes.json").write_text(json.dumps(rows, indent=1))
-        (run_dir / "results.json").write_text(json.dumps(summary, indent=2))
-        (run_dir / "results.md").write_text(markdown(summary, task.suite))
-        for name in ("results.json", "results.md", "episodes.json"):
-            stage.add_output(run_dir / name, kind="report")
-        for (tid, i), frames in sorted(videos.items()):
-            ok = next(r["success"] for r in rows if r["task_id"] == tid and r["init_state"] == i)
-            path = montage_video([frames], run_dir / "videos" / f"task{tid:02d}_init{i:02d}_{'success' if ok else 'failure'}.gif")
-            stage.add_output(path, kind="video")
-        stage.metrics.update({k: v for k, v in summary.items() if k != "per_task"})
-        print(markdown(summary, task.suite))
+        for mode, stage in stages.items():
+            out_dir = run_dir / mode if cfg.termination == "all" else run_dir
+            summaries[mode] = record_mode(stage, cfg, mode, [r for r in rows if r["termination"] == mode],
+                                          videos, policy_path, reflector_path, out_dir)
     report = write_report(manifest.root, task.name)  # the experiment's report, now with this evaluation
     log.info("experiment report: %s", report)
+    return summaries if cfg.termination == "all" else summaries[cfg.termination]
+
+
+def record_mode(stage: StageRun, cfg: DictConfig, mode: str, rows: list[dict], videos: dict, policy_path: str,
+                reflector_path: str | None, out_dir: Path) -> dict:
+    """Write one termination mode's results, episodes and videos, and fill its manifest record."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    summary = summarise(rows)
+    summary.update(policy=policy_path, termination=mode, init_states=cfg.init_states, report_dir=str(out_dir))
+    if mode == "reflector":
+        summary.update(reflector=reflector_path, eta=float(cfg.eta), reflector_termination=termination_metrics(
+            [StopOutcome(r["first_success_step"], r["stop_step"]) for r in rows if r["error"] is None]))
+    (out_dir / "episodes.json").write_text(json.dumps(rows, indent=1))
+    (out_dir / "results.json").write_text(json.dumps(summary, indent=2))
+    (out_dir / "results.md").write_text(markdown(summary, cfg.task.suite))
+    for name in ("results.json", "results.md", "episodes.json"):
+        stage.add_output(out_dir / name, kind="report")
+    for (tid, i), frames in sorted(videos.items()):
+        r = next(r for r in rows if r["task_id"] == tid and r["init_state"] == i)
+        if mode != "fixed":  # the rollout ran to the horizon; show it up to where this mode stopped
+            frames = frames[:r["steps"] + 1]
+        path = montage_video([frames], out_dir / "videos" / f"task{tid:02d}_init{i:02d}_{'success' if r['success'] else 'failure'}.gif")
+        stage.add_output(path, kind="video")
+    stage.metrics.update({k: v for k, v in summary.items() if k != "per_task"})
+    print(markdown(summary, cfg.task.suite))
     return summary
 
 

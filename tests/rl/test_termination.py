@@ -4,8 +4,8 @@ import math
 import numpy as np
 
 from worldenv_core.metrics import auroc, binary_metrics
-from worldenv_core.rl.termination import (StopOutcome, check_steps, first_stop, first_success, success_labels,
-                                          termination_metrics)
+from worldenv_core.rl.termination import (StopOutcome, check_steps, episode_outcomes, first_stop, first_success,
+                                          success_labels, termination_metrics)
 
 
 def test_labels_are_one_from_the_first_oracle_success_onward():
@@ -54,3 +54,18 @@ def test_binary_metrics_and_auroc_by_hand():
     assert math.isclose(m["auroc"], 8 / 9)
     assert math.isclose(auroc([0.5, 0.5], [1, 0]), 0.5)  # a tie counts half
     assert math.isnan(auroc([0.2, 0.3], [1, 1]))
+
+
+def test_episode_outcomes_read_every_mode_off_one_rollout():
+    flags = np.zeros(41, bool)
+    flags[[20, 21, 22, 30]] = True  # success at 20, undone at 23, back at 30 only
+    checks, scores = [0, 8, 16, 24, 32], [0.1, 0.2, 0.3, 0.7, 0.9]
+    out = episode_outcomes(flags, checks, scores, eta=0.5)
+    assert out["oracle"] == {"success": True, "steps": 20, "stop_step": None}
+    assert out["fixed"] == {"success": False, "steps": 40, "stop_step": None}
+    assert out["reflector"] == {"success": False, "steps": 24, "stop_step": 24}  # stopped after it was undone
+    never = episode_outcomes(flags, checks, scores, eta=0.95)
+    assert never["reflector"] == {"success": False, "steps": 40, "stop_step": None}
+    early = episode_outcomes(flags, checks, scores, eta=0.25)
+    assert early["reflector"] == {"success": False, "steps": 16, "stop_step": 16}
+    assert episode_outcomes(np.zeros(5, bool), [], [], 0.5)["oracle"] == {"success": False, "steps": 4, "stop_step": None}

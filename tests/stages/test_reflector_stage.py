@@ -61,12 +61,18 @@ def test_train_reflector_resumes_and_rejects_bad_settings(trained):
         train_reflector(cfg("train_reflector", exp, *SMALL))
 
 
-def test_evaluate_with_reflector_termination(trained, tmp_path):
+@pytest.fixture(scope="module")
+def with_policy(trained):
     from stages.train_policy.run import run as train_policy
 
     exp, _ = trained
     train_policy(cfg("train_policy", exp, "train.steps=4", "scale_head.steps=2", "demos_per_task=1", "policy.hidden=32",
                      "policy.backbone.widths=[8,8,8,8]", "policy.backbone.keypoints=4"))
+    return exp
+
+
+def test_evaluate_with_reflector_termination(with_policy):
+    exp = with_policy
     out = evaluate(cfg("evaluate", exp, "termination=reflector", "eta=0.0", "init_states=1", "workers=1",
                        "progress=false"))
     (ep,) = json.loads((Path(out["report_dir"]) / "episodes.json").read_text())
@@ -76,3 +82,24 @@ def test_evaluate_with_reflector_termination(trained, tmp_path):
     assert "sft / reflector" in report and "## Reflector" in report and (Path(exp) / "report" / "success.png").exists()
     with pytest.raises(ConfigError, match=r"eta .* must be in \[0, 1\]"):
         evaluate(cfg("evaluate", exp, "termination=reflector", "eta=-1", "init_states=1"))
+
+
+def test_evaluate_all_equals_three_separate_runs(with_policy):
+    """termination=all reads oracle, fixed and reflector results off one rollout to the horizon;
+    policy and simulator are deterministic, so they must equal three separate evaluations."""
+    exp = with_policy
+    common = ["init_states=1", "workers=1", "progress=false", "videos_per_task=0"]
+    probe = evaluate(cfg("evaluate", exp, "termination=all", "eta=0.5", *common))
+    (probe_ep,) = json.loads((Path(probe["reflector"]["report_dir"]) / "episodes.json").read_text())
+    scores = sorted(probe_ep["reflector_scores"])
+    eta = round(scores[len(scores) // 2], 4)  # a threshold some checks pass and some do not
+    together = evaluate(cfg("evaluate", exp, "termination=all", f"eta={eta}", *common))
+    keys = ("success", "steps", "stop_step", "first_success_step", "ever_succeeded")
+    for mode in ("oracle", "fixed", "reflector"):  # one manifest record per mode, so the report finds each
+        assert Manifest(exp).latest("evaluate", task="tiny", termination=mode).config["termination"] == "all"
+    for mode in ("oracle", "fixed", "reflector"):
+        alone = evaluate(cfg("evaluate", exp, f"termination={mode}", f"eta={eta}", *common))
+        (a,) = json.loads((Path(alone["report_dir"]) / "episodes.json").read_text())
+        (b,) = json.loads((Path(together[mode]["report_dir"]) / "episodes.json").read_text())
+        assert {k: a[k] for k in keys} == {k: b[k] for k in keys}, mode
+    assert together["fixed"]["per_task"][0]["mean_steps"] == 280

@@ -17,19 +17,23 @@ class MissingEpisodesError(ArtefactError):
 
 
 def collected_episodes(manifest: Manifest, stage: StageRun, task: str, scale: str, expert_only: bool) -> list[Path]:
-    """The latest expert collection of this task and scale, plus the latest policy collection
-    unless `expert_only` (the paper's "w/o extra data" ablation); sorted paths."""
+    """The latest expert collection of this task and scale, plus every policy collection of it
+    unless `expert_only` (the paper's "w/o extra data" ablation); sorted, deduplicated paths.
+
+    Only the latest expert collection counts (a changed expert makes other demos, and the
+    policy is trained on exactly those); policy rollouts are extra data whichever collection
+    run gathered them (e.g. with and without `post_success_steps`), so all of them count."""
     tags = {"task": task, "scale": scale}
     paths = stage.use(manifest.latest("collect", source="expert", **tags), kind="episodes")
     if not expert_only:
-        try:
-            record = manifest.latest("collect", source="policy", **tags)
-        except ArtefactError as e:
+        records = manifest.find("collect", source="policy", **tags)
+        if not records:
             raise MissingEpisodesError(
-                f"{e}; collect policy rollouts first (`python -m stages.collect +task={task} source=policy`) "
-                "or use expert data only with expert_only=true") from None
-        paths += stage.use(record, kind="episodes")
-    return sorted(paths)
+                f"no policy rollouts of task {task} at scale {scale} in {manifest.path}; collect them first "
+                f"(`python -m stages.collect +task={task} source=policy`) or use expert data only with expert_only=true")
+        for record in records:
+            paths += stage.use(record, kind="episodes")
+    return sorted(set(paths))
 
 
 def holdout_split(paths: list[Path], every: int) -> tuple[list[Path], list[Path]]:

@@ -181,7 +181,8 @@ class PolicyEvalJob:
     chunk: int
     max_steps: int
     termination: str  # "oracle": stop at the first success; "fixed": run max_steps, judge the last frame;
-    #                   "reflector": stop when the reflector's R > eta, judge the frame it stopped at
+    #                   "reflector": stop when the reflector's R > eta, judge the frame it stopped at;
+    #                   "all": run max_steps with the reflector watching, rows for all three
     video_ids: tuple[int, ...] = ()
     reflector_path: str | None = None
     eta: float = 0.5
@@ -200,30 +201,36 @@ def cached_reflector(path: str, image_size: int):
 
 
 def evaluate_policy_task(job: PolicyEvalJob) -> dict:
-    """Success of the policy's mean actions from benchmark init states; videos for `video_ids`."""
+    """Success of the policy's mean actions from benchmark init states; videos for `video_ids`.
+    termination="all" runs each episode to the horizon once, the reflector watching, and returns
+    rows for oracle, fixed and reflector termination read off that one rollout."""
     from worldenv_core.envs.recording import policy_episode
+    from worldenv_core.models.reflector import ReflectorStop
+    from worldenv_core.rl.termination import episode_outcomes
 
     env = cached_env(job.suite, job.task_id, job.cameras, job.image_size, render=True)
     runner = cached_runner(job.policy_path, False, 1.0, policy_contract(job.cameras, job.image_size, job.chunk))
-    reflector = cached_reflector(job.reflector_path, job.image_size) if job.termination == "reflector" else None
+    watch = job.termination == "all"
+    reflector = cached_reflector(job.reflector_path, job.image_size) if job.termination in ("reflector", "all") else None
     rows, videos = [], {}
     for i in job.init_ids:
         t0 = time.perf_counter()
-        stop = None
-        if reflector is not None:
-            from worldenv_core.models.reflector import ReflectorStop
-
-            stop = ReflectorStop(reflector, job.eta, env.instruction, runner.encoder)
+        stop = ReflectorStop(reflector, job.eta, env.instruction, runner.encoder, watch=watch) if reflector else None
         traj = policy_episode(env, runner, i, 0, job.max_steps, stop_on_success=job.termination == "oracle",
                               stop_when=stop)
-        flags = [f.success for f in traj.frames]
-        stopped = stop is not None and bool(stop.scores) and stop.scores[-1] > job.eta
-        rows.append({"suite": job.suite, "task_id": job.task_id, "task": env.task.name, "init_state": i,
-                     "success": bool(traj.error is None and flags and flags[-1]),
-                     "ever_succeeded": bool(any(flags)), "steps": traj.length,
-                     "first_success_step": flags.index(True) if any(flags) else None,
-                     "stop_step": traj.length if stopped else None,
-                     "error": traj.error, "seconds": time.perf_counter() - t0})
+        flags = [f.success for f in traj.frames] or [False]
+        scores = stop.scores if stop is not None else []
+        checks = [k * job.chunk for k in range(len(scores))]  # asked at every chunk boundary from step 0
+        modes = episode_outcomes(flags, checks, scores, job.eta)
+        base = {"suite": job.suite, "task_id": job.task_id, "task": env.task.name, "init_state": i,
+                "ever_succeeded": bool(any(flags)), "first_success_step": flags.index(True) if any(flags) else None,
+                "error": traj.error, "seconds": time.perf_counter() - t0}
+        for mode in (("oracle", "fixed", "reflector") if watch else (job.termination,)):
+            # a single-mode episode ended where that mode stops, so its last frame is judged
+            m = modes[mode] if watch else {**modes["fixed"], "stop_step": modes["reflector"]["stop_step"]}
+            rows.append({**base, "termination": mode, "success": traj.error is None and m["success"],
+                         "steps": m["steps"], "stop_step": m["stop_step"] if mode == "reflector" else None,
+                         **({"reflector_scores": [round(x, 4) for x in scores]} if mode == "reflector" else {})})
         if i in job.video_ids and traj.frames:
             states = np.stack([f.sim_state for f in traj.frames])
             videos[i] = env.render_states(states, [job.cameras[0]])[job.cameras[0]]

@@ -173,14 +173,15 @@ def prefix_scores(model, frames: torch.Tensor, instruction: str, steps, encoder)
 class ReflectorStop:
     """Dynamic termination for one real-simulator episode: called with the boundary images of
     every chunk, it adds the reflector camera's frame to an incremental scorer and answers
-    whether R > eta. `scores` keeps R at every check."""
+    whether R > eta. `scores` keeps R at every check. watch=True only records (never stops): one
+    rollout to the horizon then serves every termination mode (`episode_outcomes`)."""
 
-    def __init__(self, model, eta: float, instruction: str, encoder):
+    def __init__(self, model, eta: float, instruction: str, encoder, watch: bool = False):
         self.scorer = incremental_scorer(model, instruction, encoder)
-        self.eta, self.cameras, self.scores = check_eta(eta), [model.camera], []
+        self.eta, self.cameras, self.scores, self.watch = check_eta(eta), [model.camera], [], watch
 
     def __call__(self, images: dict) -> bool:
         frame = torch.from_numpy(images[self.cameras[0]]).permute(2, 0, 1)[None]
         self.scorer.add(frame)
         self.scores.append(float(self.scorer.score()[0]))
-        return self.scores[-1] > self.eta
+        return not self.watch and self.scores[-1] > self.eta

@@ -56,6 +56,26 @@ def first_stop(steps, scores, eta: float) -> int | None:
     return int(steps[above[0]]) if len(above) else None
 
 
+def episode_outcomes(flags, check_steps_: list[int], scores, eta: float) -> dict[str, dict]:
+    """One rollout run to its horizon, judged under every termination mode at once.
+
+    flags: the oracle's per-frame success flags of the whole rollout; check_steps_/scores: the
+    steps where the reflector was asked and its R there. With a deterministic policy and
+    simulator, the rollout an `oracle` or `reflector` episode would have run is this one cut
+    short, so each mode's outcome is read off it: `oracle` ends at the first success, `fixed`
+    at the horizon, `reflector` at the first check with R > eta (else the horizon); success is
+    the oracle's flag at that frame. Returns mode -> {success, steps, stop_step}."""
+    flags = np.asarray(flags, dtype=bool)
+    last = len(flags) - 1
+    t_success = first_success(flags)
+    t_stop = first_stop(check_steps_, scores, eta) if len(scores) else None
+    oracle_end = last if t_success is None else t_success
+    reflector_end = last if t_stop is None else t_stop
+    return {"oracle": {"success": bool(flags[oracle_end]), "steps": oracle_end, "stop_step": None},
+            "fixed": {"success": bool(flags[last]), "steps": last, "stop_step": None},
+            "reflector": {"success": bool(flags[reflector_end]), "steps": reflector_end, "stop_step": t_stop}}
+
+
 def termination_metrics(outcomes: list[StopOutcome]) -> dict:
     kinds = [o.kind for o in outcomes]
     tp, fp, fn = kinds.count("correct"), kinds.count("false_stop"), kinds.count("missed")

@@ -1,0 +1,42 @@
+"""Which collected episodes the world-simulator and reflector stages read, and their split."""
+import pytest
+
+from worldenv_core.data.selection import MissingEpisodesError, collected_episodes, holdout_split
+from worldenv_core.manifest import Manifest, StageRun
+
+
+def _collect(manifest, folder, source, names):
+    folder.mkdir(parents=True, exist_ok=True)
+    with StageRun(manifest, "collect", {"task": "goal", "scale": "small", "source": source}, {"n": len(names)}) as run:
+        for name in names:
+            (folder / name).write_bytes(name.encode())
+            run.add_output(folder / name, kind="episodes")
+    return [(folder / n).resolve() for n in names]
+
+
+def test_latest_expert_collection_plus_every_policy_collection(tmp_path):
+    m = Manifest(tmp_path / "exp")
+    _collect(m, tmp_path / "expert-old", "expert", ["e0.mcap"])
+    expert = _collect(m, tmp_path / "expert-new", "expert", ["e0.mcap", "e1.mcap"])
+    first = _collect(m, tmp_path / "policy-a", "policy", ["p0.mcap", "p1.mcap"])
+    resumed = _collect(m, tmp_path / "policy-a", "policy", ["p0.mcap"])  # a shorter rerun of the same folder
+    other = _collect(m, tmp_path / "policy-b", "policy", ["p0.mcap"])
+    with StageRun(m, "train_reflector", {}, {}) as stage:
+        paths = collected_episodes(m, stage, "goal", "small", expert_only=False)
+        assert paths == sorted(set(expert + first + resumed + other)) and len(paths) == 5
+        assert len(stage.inputs) == 4  # the newest expert record and all three policy records
+        assert collected_episodes(m, stage, "goal", "small", expert_only=True) == sorted(expert)
+
+
+def test_missing_policy_rollouts_name_the_fix(tmp_path):
+    m = Manifest(tmp_path / "exp")
+    _collect(m, tmp_path / "expert", "expert", ["e0.mcap"])
+    with StageRun(m, "train_reflector", {}, {}) as stage, pytest.raises(MissingEpisodesError, match="source=policy"):
+        collected_episodes(m, stage, "goal", "small", expert_only=False)
+
+
+def test_every_nth_episode_is_held_out_and_at_least_one():
+    paths = [f"e{i}" for i in range(7)]
+    train, held = holdout_split(paths, 3)
+    assert held == ["e2", "e5"] and len(train) == 5
+    assert holdout_split(paths[:2], 5)[1] == ["e1"]
