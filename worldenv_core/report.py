@@ -71,6 +71,53 @@ def success_table(manifest: Manifest, task: str) -> tuple[list[str], dict]:
     return lines, cells
 
 
+def _input_tags(manifest: Manifest, record: StageRecord, stage: str) -> dict:
+    by_id = {r.id: r for r in manifest.records()}
+    return next((by_id[i].tags for i in record.inputs if i in by_id and by_id[i].stage == stage), {})
+
+
+def _history(manifest: Manifest, record: StageRecord) -> list[dict]:
+    """A post_train_loop run's per-iteration log: the training.json written beside its plot."""
+    for art in record.files("plot"):
+        path = (manifest.root / art.path).with_suffix(".json")
+        if path.exists():
+            return json.loads(path.read_text())
+    return []
+
+
+def _span(history: list[dict], key: str, n: int = 5) -> str:
+    """Mean of `key` over the first and the last n iterations: 'first -> last'."""
+    vals = [h[key] for h in history if key in h and h.get("step", 0) > 0]
+    if not vals:
+        return ""
+    k = min(n, max(1, len(vals) // 2))
+    return f"{sum(vals[:k]) / k:.3g} -> {sum(vals[-k:]) / k:.3g}"
+
+
+def post_training_table(manifest: Manifest, runs: list[StageRecord], out: Path) -> list[str]:
+    """One row per post_train_loop run: its settings, which world model and reflector it imagined
+    with (so the "without extra data" ablation shows as its own row), and how the imagined
+    reward, the reflector's success rate and the real success moved; the newest run's curves."""
+    lines = ["| eta | N | iterations | world model data | reflector data | imagined reward (first 5 -> last 5 it.) "
+             "| reflector success rate | episode length | real success by iteration | wall s |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in runs:
+        h = _history(manifest, r)
+        curve = ", ".join(f"{k}: {100 * v:.0f} %" for k, v in r.metrics.get("real_success", {}).items()) or "not run"
+        lines.append(f"| {r.tags.get('eta')} | {r.tags.get('n_rollouts')} | {r.metrics.get('iterations')} "
+                     f"| {_input_tags(manifest, r, 'train_worldsim').get('data', '?')} "
+                     f"| {_input_tags(manifest, r, 'train_reflector').get('data', '?')} | {_span(h, 'mean_reward')} "
+                     f"| {_span(h, 'reflector_success_rate')} | {_span(h, 'episode_length')} | {curve} "
+                     f"| {r.wall_time_s:.0f} |")
+    plot = next((manifest.root / a.path for a in runs[-1].files("plot")), None)
+    if plot is not None and plot.exists():
+        import shutil
+
+        shutil.copyfile(plot, out / "post_training.png")
+        lines += ["", "![post-training curves, newest run](post_training.png)"]
+    return lines
+
+
 def write_report(experiment_dir: str | Path, task: str) -> Path:
     manifest = Manifest(experiment_dir)
     out = manifest.root / "report"
@@ -84,11 +131,7 @@ def write_report(experiment_dir: str | Path, task: str) -> Path:
 
     loop = manifest.find("post_train_loop", task=task)
     if loop:
-        lines += ["", "## Post-training (LOOP in imagination)", "", "| eta | N | real success by iteration | wall s |",
-                  "|---|---|---|---|"]
-        for r in loop[-6:]:
-            curve = ", ".join(f"{k}: {100 * v:.0f} %" for k, v in r.metrics.get("real_success", {}).items())
-            lines.append(f"| {r.tags.get('eta')} | {r.tags.get('n_rollouts')} | {curve} | {r.wall_time_s:.0f} |")
+        lines += ["", "## Post-training (LOOP in imagination)", ""] + post_training_table(manifest, loop[-6:], out)
 
     ws = _newest(manifest.find("train_worldsim", task=task))
     fid = _report_json(manifest, ws, "fidelity.json")

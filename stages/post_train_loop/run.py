@@ -156,6 +156,7 @@ def run(cfg: DictConfig) -> dict:
         for f in sorted(final.iterdir()):
             stage.add_output(f, kind="checkpoint")
         stage.add_output(plot_history(history, work / "training.png", f"post_train_loop {task.name}"), kind="plot")
+        stage.add_output(work / "training.json", kind="report")  # the per-iteration log beside the plot, for the report
         evals = [h for h in history if "real_success" in h]
         stage.metrics.update({"iterations": rl.iterations, "train_wall_s": round(time.perf_counter() - t0, 1),
                               "device": str(device), "final_mean_reward": history[-1].get("mean_reward"),

@@ -1,5 +1,7 @@
 """post_train_loop on the tiny task: SFT policy, world simulator and reflector from the manifest,
 LOOP iterations in imagination, real-simulator evaluation, resume, and bad settings."""
+from pathlib import Path
+
 import pytest
 
 from stages.post_train_loop.run import run as post_train_loop
@@ -63,7 +65,6 @@ def test_multirun_sweep_over_eta_on_the_basic_launcher(trained):
     """`-m rl.eta=...` runs one post-training per value, each recorded with its own tags."""
     import subprocess
     import sys
-    from pathlib import Path
 
     exp, _ = trained
     overrides = [o for o in LOOP if not o.startswith(("rl.iterations", "eval.every"))]
@@ -86,3 +87,7 @@ def test_evaluate_the_post_trained_policy_by_name(trained):
     rec = Manifest(exp).latest("post_train_loop", task="tiny")
     assert out["policy"].endswith("policy") and str(rec.files("checkpoint")[0].path).split("/")[-2] == "policy"
     assert Manifest(exp).latest("evaluate", task="tiny", policy="post_trained").metrics["episodes"] == 1
+    report = (Path(exp) / "report" / "report.md").read_text()  # rebuilt by evaluate: the post-training section
+    section = report.split("## Post-training (LOOP in imagination)")[1].split("\n## ")[0]
+    assert "| 0.5 | 2 |" in section and " -> " in section  # imagined reward first -> last iterations
+    assert "post_training.png" in section and (Path(exp) / "report" / "post_training.png").exists()
