@@ -49,6 +49,9 @@ def validate(cfg: DictConfig) -> None:
         positive_int(cfg, key)
     positive_int(cfg, "eval.every", allow_zero=True)
     positive_int(cfg, "eval.init_states")
+    positive_int(cfg, "eval.imagined_contexts", allow_zero=True)
+    if cfg.eval.imagined_contexts and cfg.eval.imagined_rollouts < 2:
+        raise ConfigError(f"eval.imagined_rollouts must be at least 2, got {cfg.eval.imagined_rollouts}")
     if cfg.rl.n_rollouts < 2:
         raise ConfigError(f"rl.n_rollouts must be at least 2 (the RLOO baseline averages the other N - 1), "
                           f"got {cfg.rl.n_rollouts}")
@@ -83,6 +86,21 @@ def build_env(cfg, worldsim_path: str, reflector_path: str, encoder, device) -> 
     return ImaginedEnv(sim, cameras, reflector, encoder, cfg.rl.eta, cfg.rl.horizon), meta["camera"]
 
 
+def imagined_success(policy, env, contexts: list[Context], cfg, encoder) -> dict:
+    """The policy in imagination on a fixed set of contexts with fixed noise: the same rollouts'
+    worth of randomness for the SFT and every later policy, so the numbers are comparable and
+    show whether post-training improved the objective it optimises (mean reward, reflector
+    success rate), whatever the real simulator says."""
+    n = min(cfg.eval.imagined_contexts, len(contexts))
+    g = torch.Generator().manual_seed(cfg.seed + 7_777)
+    picks = torch.randperm(len(contexts), generator=g)[:n].tolist()
+    with torch.no_grad():
+        batch = collect_rollouts(policy, env, [contexts[i] for i in picks], cfg.eval.imagined_rollouts, encoder,
+                                 generator=g)
+    return {"imagined_reward": float(batch.rewards.mean()),
+            "imagined_success": float(batch.by_reflector.float().mean())}
+
+
 def real_success(cfg, policy_path: str) -> float:
     """Success in the real simulator (oracle termination) on the first benchmark init states."""
     task = cfg.task
@@ -100,7 +118,10 @@ def run(cfg: DictConfig) -> dict:
     task, rl = cfg.task, cfg.rl
     device = pick_device(cfg.device)
     config = resolved(cfg)
-    work = Path(cfg.experiment_dir) / "post_train_loop" / config_hash(config)
+    # The work dir (what resume finds) is named by what defines the training, not by how it is
+    # evaluated or shown: changing eval.* or progress continues the same run.
+    work = Path(cfg.experiment_dir) / "post_train_loop" / config_hash(
+        {k: v for k, v in config.items() if k not in ("eval", "progress")})
     tags = {"task": task.name, "scale": cfg.scale.name, "eta": float(rl.eta), "n_rollouts": int(rl.n_rollouts)}
     with StageRun(manifest, "post_train_loop", tags, config) as stage:
         policy_path = resolve_policy(cfg, stage)
@@ -124,9 +145,12 @@ def run(cfg: DictConfig) -> dict:
         meta = {**pmeta, "post_trained_from": policy_path, "worldsim": worldsim_path, "reflector": reflector_path}
         log.info("post-training %s for %d iterations: %d contexts x %d rollouts each, eta %.2f, on %s; work dir %s",
                  policy_path, rl.iterations, rl.contexts_per_iteration, rl.n_rollouts, rl.eta, device, work)
-        if start_it == 0 and cfg.eval.every:
-            history.append({"step": 0, "real_success": real_success(cfg, policy_path)})
-            log.info("SFT policy: real-simulator success %.3f", history[-1]["real_success"])
+        encode = lambda s: encoder(s).to(device)  # noqa: E731
+        imagine = (lambda: imagined_success(policy, env, contexts, cfg, encode)) if cfg.eval.imagined_contexts else dict
+        if start_it == 0:
+            history.append({"step": 0, **imagine(), **({"real_success": real_success(cfg, policy_path)}
+                                                       if cfg.eval.every else {})})
+            log.info("SFT policy: %s", json.dumps(history[-1]))
         t0 = time.perf_counter()
         bar = tqdm(range(start_it, rl.iterations), initial=start_it, total=rl.iterations, desc="post_train_loop",
                    disable=not cfg.progress, dynamic_ncols=True)
@@ -135,8 +159,7 @@ def run(cfg: DictConfig) -> dict:
             picks = torch.randint(len(contexts), (rl.contexts_per_iteration,), generator=g).tolist()
             behaviour = copy.deepcopy(policy).eval()  # Algorithm 1 line 3: the frozen behaviour policy
             t_it = time.perf_counter()
-            batch = collect_rollouts(behaviour, env, [contexts[i] for i in picks], rl.n_rollouts,
-                                     lambda s: encoder(s).to(device), generator=g)
+            batch = collect_rollouts(behaviour, env, [contexts[i] for i in picks], rl.n_rollouts, encode, generator=g)
             stats = ppo_update(policy, optimizer, batch, rl.ppo_epochs, rl.epsilon, rl.minibatch, generator=g)
             entry = {"step": it + 1, "mean_reward": float(batch.rewards.mean()),
                      "reflector_success_rate": float(batch.by_reflector.float().mean()),
@@ -144,6 +167,8 @@ def run(cfg: DictConfig) -> dict:
                      **stats, "seconds": time.perf_counter() - t_it}
             done = it + 1
             path = ckpts.save(done, policy, policy_cfg, {**meta, "iteration": done}, {"ppo": optimizer}, history + [entry])
+            if done == rl.iterations or (cfg.eval.every and done % cfg.eval.every == 0):
+                entry.update(imagine())
             if cfg.eval.every and (done % cfg.eval.every == 0 or done == rl.iterations):
                 entry["real_success"] = real_success(cfg, str(path))
                 ckpts.save(done, policy, policy_cfg, {**meta, "iteration": done}, {"ppo": optimizer}, history + [entry])
@@ -160,6 +185,10 @@ def run(cfg: DictConfig) -> dict:
         evals = [h for h in history if "real_success" in h]
         stage.metrics.update({"iterations": rl.iterations, "train_wall_s": round(time.perf_counter() - t0, 1),
                               "device": str(device), "final_mean_reward": history[-1].get("mean_reward"),
-                              "real_success": {str(h["step"]): h["real_success"] for h in evals}})
+                              "real_success": {str(h["step"]): h["real_success"] for h in evals},
+                              "imagined_reward": {str(h["step"]): h["imagined_reward"] for h in history
+                                                  if "imagined_reward" in h},
+                              "imagined_success": {str(h["step"]): h["imagined_success"] for h in history
+                                                   if "imagined_success" in h}})
         log.info("post-trained policy saved to %s; metrics %s", final, json.dumps(stage.metrics))
     return stage.metrics

@@ -49,12 +49,19 @@ def test_loop_records_a_post_trained_policy_with_its_real_success_curve(trained)
     assert meta["iteration"] == 2 and meta["post_trained_from"]
     assert set(metrics["real_success"]) == {"0", "2"}  # iteration 0 is the SFT policy
     assert all(0.0 <= v <= 1.0 for v in metrics["real_success"].values())
+    # and in imagination, on fixed contexts and noise: SFT (0) vs the evaluation points
+    assert set(metrics["imagined_reward"]) == set(metrics["imagined_success"]) == {"0", "2"}
+    assert all(0.0 <= v <= 1.0 for v in [*metrics["imagined_reward"].values(), *metrics["imagined_success"].values()])
 
 
 def test_loop_resumes_and_rejects_bad_settings(trained):
     exp, _ = trained
     again = post_train_loop(cfg("post_train_loop", exp, *LOOP))
     assert again["train_wall_s"] < 5  # resumed at the end: nothing left to do
+    shown_otherwise = post_train_loop(cfg("post_train_loop", exp, *LOOP, "eval.imagined_contexts=1", "progress=true"))
+    assert shown_otherwise["train_wall_s"] < 5  # evaluation settings do not define the run: same work dir
+    with pytest.raises(ConfigError, match="imagined_rollouts must be at least 2"):
+        post_train_loop(cfg("post_train_loop", exp, *LOOP, "eval.imagined_rollouts=1"))
     for override, match in (("rl.n_rollouts=1", "at least 2"), ("rl.eta=1.5", r"eta .* must be in \[0, 1\]"),
                             ("rl.epsilon=0", "epsilon .* must be > 0")):
         with pytest.raises(ConfigError, match=match):
