@@ -47,8 +47,8 @@ def validate(cfg: DictConfig) -> None:
 
 
 def resolve_reflector(cfg: DictConfig, stage: StageRun) -> str:
-    """`reflector=`: a checkpoint folder, a train_reflector record id, or null (the latest)."""
-    path = resolve_checkpoint(stage, cfg.reflector, "train_reflector", cfg.task.name, cfg.scale.name)
+    """`reflector_from=`: a checkpoint folder, a train_reflector record id, or null (the latest)."""
+    path = resolve_checkpoint(stage, cfg.reflector_from, "train_reflector", cfg.task.name, cfg.scale.name)
     camera = read_config(path)["meta"].get("camera")
     if camera not in cfg.task.cameras:
         raise ConfigError(f"reflector {path} watches camera {camera!r}, which task {cfg.task.name} does not render "

@@ -125,8 +125,8 @@ def run(cfg: DictConfig) -> dict:
     tags = {"task": task.name, "scale": cfg.scale.name, "eta": float(rl.eta), "n_rollouts": int(rl.n_rollouts)}
     with StageRun(manifest, "post_train_loop", tags, config) as stage:
         policy_path = resolve_policy(cfg, stage)
-        worldsim_path = resolve_checkpoint(stage, cfg.worldsim, "train_worldsim", task.name, cfg.scale.name)
-        reflector_path = resolve_checkpoint(stage, cfg.reflector, "train_reflector", task.name, cfg.scale.name)
+        worldsim_path = resolve_checkpoint(stage, cfg.worldsim_from, "train_worldsim", task.name, cfg.scale.name)
+        reflector_path = resolve_checkpoint(stage, cfg.reflector_from, "train_reflector", task.name, cfg.scale.name)
         encoder = InstructionEncoder()
         env, camera = build_env(cfg, worldsim_path, reflector_path, lambda s: encoder(s).to(device), device)
         policy, pmeta = load_policy(policy_path, expect={"image_size": task.image_size, "chunk": task.chunk},

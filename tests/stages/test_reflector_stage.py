@@ -88,7 +88,8 @@ def test_evaluate_all_equals_three_separate_runs(with_policy):
     """termination=all reads oracle, fixed and reflector results off one rollout to the horizon;
     policy and simulator are deterministic, so they must equal three separate evaluations."""
     exp = with_policy
-    common = ["init_states=1", "workers=1", "progress=false", "videos_per_task=0"]
+    reflector = Manifest(exp).latest("train_reflector", task="tiny").id  # by record id, as on the command line
+    common = ["init_states=1", "workers=1", "progress=false", "videos_per_task=0", f"reflector_from={reflector}"]
     probe = evaluate(cfg("evaluate", exp, "termination=all", "eta=0.5", *common))
     (probe_ep,) = json.loads((Path(probe["reflector"]["report_dir"]) / "episodes.json").read_text())
     scores = sorted(probe_ep["reflector_scores"])
