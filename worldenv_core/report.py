@@ -62,13 +62,20 @@ def success_table(manifest: Manifest, task: str) -> tuple[list[str], dict]:
     lines.append("| **all** | " + " | ".join(f"**{100 * cells[k]['success_rate']:.1f} %**" for k in cols) + " |")
     n = {cells[k]["init_states"] for k in cols}
     lines += ["", f"(first {'/'.join(map(str, sorted(n)))} benchmark init states per task)"]
-    refl = cells.get(("sft", "reflector")) or cells.get(("post_trained", "reflector"))
-    if refl and "reflector_termination" in refl:
-        t = refl["reflector_termination"]
-        lines += [f"Reflector stops in the real simulator (eta {refl['eta']}): termination F1 {t['f1']:.3f}, "
-                  f"median timing error {t['timing_error_median']:.0f} steps, {t['false_stops']} false stops, "
-                  f"{t['missed_successes']} missed successes."]
+    for policy in POLICIES:
+        refl = cells.get((policy, "reflector"))
+        if refl and "reflector_termination" in refl:
+            t = refl["reflector_termination"]
+            lines += [f"{policy}: reflector `{_short(refl['reflector'])}` stops in the real simulator (eta {refl['eta']}): "
+                      f"termination F1 {t['f1']:.3f}, median timing error {t['timing_error_median']:.0f} steps, "
+                      f"{t['false_stops']} false stops, {t['missed_successes']} missed successes."]
     return lines, cells
+
+
+def _short(path: str) -> str:
+    """<stage>/<work dir> of a checkpoint path: which run it came from, without machine paths."""
+    parts = Path(path).parts
+    return "/".join(parts[-3:-1]) if len(parts) >= 3 else str(path)
 
 
 def _input_tags(manifest: Manifest, record: StageRecord, stage: str) -> dict:
@@ -94,20 +101,30 @@ def _span(history: list[dict], key: str, n: int = 5) -> str:
     return f"{sum(vals[:k]) / k:.3g} -> {sum(vals[-k:]) / k:.3g}"
 
 
+def _fixed(record: StageRecord) -> str:
+    """The imagined evaluation on fixed contexts and noise: first and last evaluation point."""
+    rew, ok = record.metrics.get("imagined_reward", {}), record.metrics.get("imagined_success", {})
+    if len(rew) < 2:
+        return "not run"
+    a, b = min(rew, key=int), max(rew, key=int)
+    return f"{rew[a]:.3f} -> {rew[b]:.3f}, {ok[a]:.3f} -> {ok[b]:.3f}"
+
+
 def post_training_table(manifest: Manifest, runs: list[StageRecord], out: Path) -> list[str]:
     """One row per post_train_loop run: its settings, which world model and reflector it imagined
     with (so the "without extra data" ablation shows as its own row), and how the imagined
     reward, the reflector's success rate and the real success moved; the newest run's curves."""
     lines = ["| eta | N | iterations | world model data | reflector data | imagined reward (first 5 -> last 5 it.) "
-             "| reflector success rate | episode length | real success by iteration | wall s |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| reflector success rate | episode length | fixed contexts: imagined reward, success (SFT -> last) "
+             "| real success by iteration | wall s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in runs:
         h = _history(manifest, r)
         curve = ", ".join(f"{k}: {100 * v:.0f} %" for k, v in r.metrics.get("real_success", {}).items()) or "not run"
         lines.append(f"| {r.tags.get('eta')} | {r.tags.get('n_rollouts')} | {r.metrics.get('iterations')} "
                      f"| {_input_tags(manifest, r, 'train_worldsim').get('data', '?')} "
                      f"| {_input_tags(manifest, r, 'train_reflector').get('data', '?')} | {_span(h, 'mean_reward')} "
-                     f"| {_span(h, 'reflector_success_rate')} | {_span(h, 'episode_length')} | {curve} "
+                     f"| {_span(h, 'reflector_success_rate')} | {_span(h, 'episode_length')} | {_fixed(r)} | {curve} "
                      f"| {r.wall_time_s:.0f} |")
     plot = next((manifest.root / a.path for a in runs[-1].files("plot")), None)
     if plot is not None and plot.exists():
