@@ -17,23 +17,25 @@ class MissingEpisodesError(ArtefactError):
 
 
 def collected_episodes(manifest: Manifest, stage: StageRun, task: str, scale: str, expert_only: bool) -> list[Path]:
-    """The latest expert collection of this task and scale, plus every policy collection of it
-    unless `expert_only` (the paper's "w/o extra data" ablation); sorted, deduplicated paths.
+    """The latest expert collection of this task and scale, plus the latest policy collection
+    unless `expert_only` (the paper's "w/o extra data" ablation); sorted paths.
 
-    Only the latest expert collection counts (a changed expert makes other demos, and the
-    policy is trained on exactly those); policy rollouts are extra data whichever collection
-    run gathered them (e.g. with and without `post_success_steps`), so all of them count."""
+    Latest, not all: collections with the same seed and policy hold the same rollouts (episode
+    seeds depend on seed, task and index only; a rerun with `post_success_steps` only extends
+    them), so a union would count episodes twice and put copies on both sides of the held-out
+    split. More rollouts come from a larger `episodes_per_task` into the same collection."""
     tags = {"task": task, "scale": scale}
     paths = stage.use(manifest.latest("collect", source="expert", **tags), kind="episodes")
     if not expert_only:
-        records = manifest.find("collect", source="policy", **tags)
-        if not records:
+        try:
+            record = manifest.latest("collect", source="policy", **tags)
+        except ArtefactError:
             raise MissingEpisodesError(
                 f"no policy rollouts of task {task} at scale {scale} in {manifest.path}; collect them first "
-                f"(`python -m stages.collect +task={task} source=policy`) or use expert data only with expert_only=true")
-        for record in records:
-            paths += stage.use(record, kind="episodes")
-    return sorted(set(paths))
+                f"(`python -m stages.collect +task={task} source=policy`) or use expert data only with "
+                "expert_only=true") from None
+        paths += stage.use(record, kind="episodes")
+    return sorted(paths)
 
 
 def holdout_split(paths: list[Path], every: int) -> tuple[list[Path], list[Path]]:
