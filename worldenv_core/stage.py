@@ -12,7 +12,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from worldenv_core.envs.tasks import check_suite, resolve_task_ids
-from worldenv_core.manifest import Manifest
+from worldenv_core.manifest import Manifest, config_hash
 
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 log = logging.getLogger("worldenv")
@@ -123,3 +123,10 @@ def resolve_policy(cfg: DictConfig, stage_run) -> str:
     ref = cfg.policy_from
     producer = POLICY_SOURCES.get(ref, "train_policy")
     return resolve_checkpoint(stage_run, None if ref in POLICY_SOURCES else ref, producer, cfg.task.name, cfg.scale.name)
+
+
+def work_dir(experiment_dir, stage: str, config: dict, inputs: list[str]) -> Path:
+    """Where a training stage keeps the checkpoints it resumes from, named by its settings and by
+    the manifest records it read: rerun on other data (a newer collection, another policy) it
+    starts fresh instead of resuming, or reusing, a run trained on something else."""
+    return Path(experiment_dir) / stage / config_hash({**config, "inputs": sorted(inputs)})

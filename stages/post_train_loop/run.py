@@ -27,7 +27,7 @@ from worldenv_core.envs.collection import PolicyEvalJob, evaluate_policy_task
 from worldenv_core.envs.imagined import ImaginedSimulator
 from worldenv_core.envs.tasks import resolve_task_ids
 from worldenv_core.kinematics.camera import PinholeCamera
-from worldenv_core.manifest import StageRun, config_hash
+from worldenv_core.manifest import StageRun
 from worldenv_core.models.checkpoint import read_config, save_model
 from worldenv_core.models.policy import load_policy
 from worldenv_core.models.reflector import check_eta, load_reflector
@@ -35,7 +35,7 @@ from worldenv_core.models.text import InstructionEncoder
 from worldenv_core.parallel import run_jobs
 from worldenv_core.rl.imagined_env import Context, ImaginedEnv
 from worldenv_core.rl.loop import collect_rollouts, policy_param_groups, ppo_update
-from worldenv_core.stage import (ConfigError, positive_int, require_task, resolve_checkpoint, resolve_policy,
+from worldenv_core.stage import (ConfigError, positive_int, require_task, resolve_checkpoint, resolve_policy, work_dir,
                                  resolved, start)
 from worldenv_core.training import Checkpoints, pick_device, plot_history
 
@@ -118,10 +118,6 @@ def run(cfg: DictConfig) -> dict:
     task, rl = cfg.task, cfg.rl
     device = pick_device(cfg.device)
     config = resolved(cfg)
-    # The work dir (what resume finds) is named by what defines the training, not by how it is
-    # evaluated or shown: changing eval.* or progress continues the same run.
-    work = Path(cfg.experiment_dir) / "post_train_loop" / config_hash(
-        {k: v for k, v in config.items() if k not in ("eval", "progress")})
     tags = {"task": task.name, "scale": cfg.scale.name, "eta": float(rl.eta), "n_rollouts": int(rl.n_rollouts)}
     with StageRun(manifest, "post_train_loop", tags, config) as stage:
         policy_path = resolve_policy(cfg, stage)
@@ -138,6 +134,10 @@ def run(cfg: DictConfig) -> dict:
         except MissingEpisodesError as e:
             raise ConfigError(str(e)) from None
         contexts = contexts_from_episodes(paths, camera)
+        # The work dir (what resume finds) is named by what defines the training and by its inputs,
+        # not by how it is evaluated or shown: changing eval.* or progress continues the same run.
+        work = work_dir(cfg.experiment_dir, "post_train_loop",
+                        {k: v for k, v in config.items() if k not in ("eval", "progress")}, stage.inputs)
         policy_cfg = read_config(policy_path)["model"]
         optimizer = torch.optim.Adam(policy_param_groups(policy, rl.lr_backbone, rl.lr_heads))
         ckpts = Checkpoints(work)

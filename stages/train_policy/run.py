@@ -19,11 +19,11 @@ from tqdm import tqdm
 
 from worldenv_core.data.dataset import EpisodeDataset
 from worldenv_core.data.mcap_io import read_info
-from worldenv_core.manifest import StageRun, config_hash
+from worldenv_core.manifest import StageRun
 from worldenv_core.models.checkpoint import save_model
 from worldenv_core.models.text import InstructionEncoder
 from worldenv_core.rl.laplace import laplace_nll
-from worldenv_core.stage import ConfigError, positive_int, require_task, resolved, start
+from worldenv_core.stage import ConfigError, positive_int, require_task, resolved, start, work_dir
 from worldenv_core.training import Checkpoints, RunningMeans, batches, pick_device, plot_history, random_shift
 
 log = logging.getLogger("worldenv.train_policy")
@@ -64,11 +64,11 @@ def run(cfg: DictConfig) -> dict:
     device = pick_device(cfg.device)
     tags = {"task": task.name, "scale": cfg.scale.name}
     config = resolved(cfg)
-    work = Path(cfg.experiment_dir) / "train_policy" / config_hash(config)
     with StageRun(manifest, "train_policy", tags, config) as stage:
         demos = manifest.get(cfg.demos) if cfg.demos else manifest.latest("collect", task=task.name,
                                                                             scale=cfg.scale.name, source="expert")
         paths = select_demos(stage.use(demos, kind="episodes"), cfg.demos_per_task, list(task.task_ids or []) or None)
+        work = work_dir(cfg.experiment_dir, "train_policy", config, stage.inputs)
         data = EpisodeDataset(paths, cameras=list(task.cameras), mode="chunk", chunk=task.chunk, future_frames=False)
         stats = data.compute_stats()
         model_cfg = OmegaConf.to_container(cfg.policy, resolve=True)

@@ -22,14 +22,14 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from worldenv_core.data.selection import episode_key, load_split
-from worldenv_core.manifest import ArtefactError, StageRun, config_hash
+from worldenv_core.manifest import ArtefactError, StageRun
 from worldenv_core.metrics import binary_metrics
 from worldenv_core.models.checkpoint import save_model
 from worldenv_core.models.reflector import check_eta, prefix_scores
 from worldenv_core.models.reflector_data import PrefixSampler
 from worldenv_core.models.text import InstructionEncoder
 from worldenv_core.rl.termination import StopOutcome, check_steps, first_stop, first_success, success_labels, termination_metrics
-from worldenv_core.stage import ConfigError, positive_int, require_task, resolved, start
+from worldenv_core.stage import ConfigError, positive_int, require_task, resolved, start, work_dir
 from worldenv_core.training import Checkpoints, RunningMeans, pick_device, plot_history, random_shift
 
 log = logging.getLogger("worldenv.train_reflector")
@@ -58,10 +58,10 @@ def run(cfg: DictConfig) -> dict:
     task = cfg.task
     device = pick_device(cfg.device)
     config = resolved(cfg)
-    work = Path(cfg.experiment_dir) / "train_reflector" / config_hash(config)
     tags = {"task": task.name, "scale": cfg.scale.name, "data": "expert" if cfg.expert_only else "expert+policy"}
     with StageRun(manifest, "train_reflector", tags, config) as stage:
         _, held, episodes, held_eps = load_split(manifest, stage, cfg)
+        work = work_dir(cfg.experiment_dir, "train_reflector", config, stage.inputs)
         try:
             sampler = PrefixSampler(episodes, cfg.camera, cfg.frame_stride, cfg.reflector.max_frames,
                                     cfg.train.hard_negative_fraction, cfg.train.hard_window)

@@ -25,10 +25,10 @@ from worldenv_core.kinematics.action_map import draw_action_maps_per_rollout
 from worldenv_core.kinematics.camera import PinholeCamera
 from worldenv_core.kinematics.next_state import NextStateModel, state_errors
 from worldenv_core.data.selection import episode_key, load_split
-from worldenv_core.manifest import StageRun, config_hash
+from worldenv_core.manifest import StageRun
 from worldenv_core.models.checkpoint import save_model
 from worldenv_core.models.worldsim_data import LatentChunks, encode_episode_frames
-from worldenv_core.stage import ConfigError, positive_int, require_task, resolved, start
+from worldenv_core.stage import ConfigError, positive_int, require_task, resolved, start, work_dir
 from worldenv_core.training import Checkpoints, RunningMeans, batches, pick_device, plot_history
 from worldenv_core.viz import montage_video
 
@@ -68,10 +68,10 @@ def run(cfg: DictConfig) -> dict:
     task = cfg.task
     device = pick_device(cfg.device)
     config = resolved(cfg)
-    work = Path(cfg.experiment_dir) / "train_worldsim" / config_hash(config)
     tags = {"task": task.name, "scale": cfg.scale.name, "data": "expert" if cfg.expert_only else "expert+policy"}
     with StageRun(manifest, "train_worldsim", tags, config) as stage:
         _, held, episodes, held_eps = load_split(manifest, stage, cfg)
+        work = work_dir(cfg.experiment_dir, "train_worldsim", config, stage.inputs)
         cameras = task_cameras(cfg, sorted({ep.meta.task_id for ep in episodes + held_eps}))
         kinematics = NextStateModel.fit(episodes)
         log.info("kinematics fitted on %d episodes: %s", len(episodes), kinematics)

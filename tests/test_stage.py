@@ -1,0 +1,12 @@
+"""Shared stage helpers."""
+from worldenv_core.stage import work_dir
+
+
+def test_work_dir_depends_on_settings_and_inputs_not_their_order():
+    cfg = {"lr": 1e-3}
+    a = work_dir("exp", "train_reflector", cfg, ["collect-1", "collect-2"])
+    assert a == work_dir("exp", "train_reflector", cfg, ["collect-2", "collect-1"])
+    assert a.parent.as_posix() == "exp/train_reflector"
+    # a newer collection (same settings) is a new run, never a resume of the one trained on the old data
+    assert a != work_dir("exp", "train_reflector", cfg, ["collect-1", "collect-3"])
+    assert a != work_dir("exp", "train_reflector", {"lr": 1e-4}, ["collect-1", "collect-2"])
