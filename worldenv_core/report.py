@@ -150,13 +150,17 @@ def write_report(experiment_dir: str | Path, task: str) -> Path:
     if loop:
         lines += ["", "## Post-training (LOOP in imagination)", ""] + post_training_table(manifest, loop[-6:], out)
 
-    ws = _newest(manifest.find("train_worldsim", task=task))
-    fid = _report_json(manifest, ws, "fidelity.json")
-    if fid:
-        lines += ["", f"## World simulator ({ws.tags.get('data')} data)", "",
-                  "| horizon | PSNR model | PSNR copy-last | SSIM model | SSIM copy-last |", "|---|---|---|---|---|"]
-        lines += [f"| {h} | {v['model_psnr']:.2f} | {v['copy_psnr']:.2f} | {v['model_ssim']:.3f} | {v['copy_ssim']:.3f} |"
-                  for h, v in fid["fidelity"].items()]
+    worldsims = [(ws, _report_json(manifest, ws, "fidelity.json")) for ws in
+                 (_newest(manifest.find("train_worldsim", task=task, data=d)) for d in ("expert+policy", "expert")) if ws]
+    if any(fid for _, fid in worldsims):  # newest of each training set: the "w/o extra data" ablation side by side
+        lines += ["", "## World simulator (open loop on held-out episodes)", "",
+                  "| data | horizon | PSNR model | PSNR copy-last | SSIM model | SSIM copy-last | SSIM plain decoding |",
+                  "|---|---|---|---|---|---|---|"]
+        for ws, fid in worldsims:
+            for h, v in (fid or {}).get("fidelity", {}).items():
+                plain = f"{v['plain_ssim']:.3f}" if "plain_ssim" in v else "-"
+                lines.append(f"| {ws.tags.get('data')} | {h} | {v['model_psnr']:.2f} | {v['copy_psnr']:.2f} | "
+                             f"{v['model_ssim']:.3f} | {v['copy_ssim']:.3f} | {plain} |")
     refl = _newest(manifest.find("train_reflector", task=task))
     acc = _report_json(manifest, refl, "reflector_eval.json")
     if acc:

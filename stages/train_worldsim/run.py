@@ -157,6 +157,28 @@ def run(cfg: DictConfig) -> dict:
     return stage.metrics
 
 
+def _fidelity(cfg, model, kinematics, cameras, held_eps, detail_gate: float) -> tuple[dict, list]:
+    """horizon -> metrics averaged over all starts of all held-out tasks; side-by-side videos."""
+    by_task = defaultdict(list)
+    for ep in held_eps:
+        by_task[ep.meta.task_id].append(ep)
+    per_task, videos = [], []
+    g = torch.Generator().manual_seed(cfg.seed)
+    for tid, eps in sorted(by_task.items()):
+        sim = ImaginedSimulator(model, kinematics, cameras[tid], detail_gate=detail_gate)
+        out = open_loop_fidelity(sim, eps, tuple(cfg.fidelity.horizons), cfg.fidelity.starts_per_episode,
+                                 camera=cfg.camera, generator=g)
+        per_task.append(out["horizons"])
+        videos += out["videos"]
+    fidelity = {}
+    for h in cfg.fidelity.horizons:
+        parts = [r[h] for r in per_task if r[h]["n"]]
+        n = sum(p["n"] for p in parts)
+        if n:
+            fidelity[h] = {k: sum(p[k] * p["n"] for p in parts) / n for k in parts[0] if k != "n"} | {"n": n}
+    return fidelity, videos
+
+
 def _latent_chunks(model, episodes, device, fresh: bool) -> LatentChunks:
     model.eval()
     cam = next(iter(episodes[0].images))
@@ -172,25 +194,14 @@ def _latent_chunks(model, episodes, device, fresh: bool) -> LatentChunks:
 
 
 def evaluate_fidelity(cfg, model, kinematics, cameras, held_eps, work: Path) -> dict:
-    """Open-loop fidelity on held-out episodes (model vs copy-last-frame) and kinematics error."""
+    """Open-loop fidelity on held-out episodes (model vs copy-last-frame) and kinematics error.
+    With detail transfer on, the model's plain decoding is measured too (`plain_psnr/ssim`)."""
     model.eval()
-    by_task = defaultdict(list)
-    for ep in held_eps:
-        by_task[ep.meta.task_id].append(ep)
-    per_task, videos = [], []
-    g = torch.Generator().manual_seed(cfg.seed)
-    for tid, eps in sorted(by_task.items()):
-        sim = ImaginedSimulator(model, kinematics, cameras[tid])
-        out = open_loop_fidelity(sim, eps, tuple(cfg.fidelity.horizons), cfg.fidelity.starts_per_episode,
-                                 camera=cfg.camera, generator=g)
-        per_task.append(out["horizons"])
-        videos += out["videos"]
-    fidelity = {}  # horizon -> metrics averaged over all starts of all tasks
-    for h in cfg.fidelity.horizons:
-        parts = [r[h] for r in per_task if r[h]["n"]]
-        n = sum(p["n"] for p in parts)
-        if n:
-            fidelity[h] = {k: sum(p[k] * p["n"] for p in parts) / n for k in parts[0] if k != "n"} | {"n": n}
+    fidelity, videos = _fidelity(cfg, model, kinematics, cameras, held_eps, model.detail_gate)
+    if model.detail_gate > 0:
+        plain, _ = _fidelity(cfg, model, kinematics, cameras, held_eps, 0.0)
+        for h, v in fidelity.items():
+            v.update(plain_psnr=plain[h]["model_psnr"], plain_ssim=plain[h]["model_ssim"])
     kin = {f"kinematics_{h}step": state_errors(kinematics, held_eps, h) for h in (1, cfg.task.chunk)}
     (work / "videos").mkdir(exist_ok=True)
     for i, (real, fake) in enumerate(videos[: cfg.fidelity.videos]):
@@ -198,11 +209,14 @@ def evaluate_fidelity(cfg, model, kinematics, cameras, held_eps, work: Path) -> 
         side = torch.cat([real[:n], fake[:n]], dim=-1).permute(0, 2, 3, 1).numpy()
         montage_video([side], work / "videos" / f"real_vs_imagined_{i}.gif", max_frames=n)
     report = {"fidelity": {str(h): v for h, v in sorted(fidelity.items())}, **kin,
-              "beats_copy_baseline": bool(fidelity) and all(v["model_psnr"] > v["copy_psnr"] for v in fidelity.values())}
+              "beats_copy_baseline": bool(fidelity) and all(v["model_psnr"] > v["copy_psnr"] for v in fidelity.values()),
+              "beats_copy_baseline_ssim": bool(fidelity) and all(v["model_ssim"] > v["copy_ssim"] for v in fidelity.values())}
     (work / "fidelity.json").write_text(json.dumps(report, indent=2))
-    md = ["| horizon (steps) | PSNR model | PSNR copy-last | SSIM model | SSIM copy-last | n |", "|---|---|---|---|---|---|"]
-    md += [f"| {h} | {v['model_psnr']:.2f} | {v['copy_psnr']:.2f} | {v['model_ssim']:.3f} | {v['copy_ssim']:.3f} | {v['n']} |"
-           for h, v in sorted(fidelity.items())]
+    plain = lambda v, k: f"{v[k]:.3f}" if k in v else "-"  # noqa: E731
+    md = ["| horizon (steps) | PSNR model | PSNR copy-last | SSIM model | SSIM copy-last | PSNR / SSIM plain decoding | n |",
+          "|---|---|---|---|---|---|---|"]
+    md += [f"| {h} | {v['model_psnr']:.2f} | {v['copy_psnr']:.2f} | {v['model_ssim']:.3f} | {v['copy_ssim']:.3f} | "
+           f"{plain(v, 'plain_psnr')} / {plain(v, 'plain_ssim')} | {v['n']} |" for h, v in sorted(fidelity.items())]
     md += ["", "| kinematics | pos median (mm) | pos p90 (mm) | rot median (deg) | gripper MAE |", "|---|---|---|---|---|"]
     md += [f"| {v['horizon']} step(s) | {v['pos_mm_median']:.2f} | {v['pos_mm_p90']:.2f} | {v['rot_deg_median']:.2f} | "
            f"{v['grip_mae']:.3f} |" for v in kin.values()]

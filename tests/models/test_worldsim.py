@@ -109,3 +109,24 @@ def test_imagined_simulator_refuses_a_camera_of_another_resolution():
     cam = PinholeCamera("agentview", 128, 100.0, np.zeros(3), np.eye(3))
     with pytest.raises(ValueError, match="128 px.*64 px"):
         ImaginedSimulator(WorldSimulator(**TINY), NextStateModel(), cam)
+
+
+def test_detail_transfer_restores_the_real_frame_where_nothing_changed():
+    torch.manual_seed(0)
+    cam = PinholeCamera("agentview", 64, 100.0, np.zeros(3), np.eye(3))
+    model = WorldSimulator(**{**TINY, "detail_gate": 0.3}).eval()
+    frames = (torch.rand(2, 1, 3, 64, 64) * 255).to(torch.uint8)
+    sim = ImaginedSimulator(model, NextStateModel(), cam)
+    assert sim.detail_gate == 0.3  # the checkpoint's setting unless the caller overrides it
+    sim.reset(frames, torch.zeros(2, 7))
+    same = sim.render(sim.latents[:, -1:])  # the content did not change: the real frame comes back exactly
+    torch.testing.assert_close(same[:, 0], frames[:, -1].float() / 255, atol=1e-5, rtol=0)
+    other = sim.latents[:, -1:] + 1.0  # decodes to something else: beyond a tiny gate the model's pixels stand
+    strict = ImaginedSimulator(model, NextStateModel(), cam, detail_gate=1e-6)
+    strict.reset(frames, torch.zeros(2, 7))
+    torch.testing.assert_close(strict.render(other), model.decode(other))
+    plain = ImaginedSimulator(model, NextStateModel(), cam, detail_gate=0.0)
+    plain.reset(frames, torch.zeros(2, 7))
+    torch.testing.assert_close(plain.render(plain.latents[:, -1:]), model.decode(plain.latents[:, -1:]))
+    with pytest.raises(ValueError, match="detail_gate"):
+        WorldSimulator(**{**TINY, "detail_gate": -1.0})

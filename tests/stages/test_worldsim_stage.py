@@ -34,11 +34,11 @@ def test_train_worldsim_records_checkpoint_fidelity_and_resumes(demo_experiment)
     assert any(name.startswith("real_vs_imagined") for name in files)
     report = json.loads(files["fidelity.json"].read_text())
     assert set(report["fidelity"]) == {"8", "16"} and report["fidelity"]["8"]["n"] == 1
-    for key in ("model_psnr", "copy_psnr", "model_ssim", "copy_ssim"):
+    for key in ("model_psnr", "copy_psnr", "model_ssim", "copy_ssim", "plain_psnr", "plain_ssim"):  # detail transfer on
         assert 0 < report["fidelity"]["8"][key] < 100
     assert report["kinematics_1step"]["pos_mm_median"] < 5  # fitted on one episode, checked on the other
     model, config = load_model(files["model.safetensors"], expect={"image_size": 64, "chunk": 8, "kind": "worldsim"})
-    assert model.sampling_steps == 2 and set(config["meta"]["cameras"]) == {"0"}
+    assert model.sampling_steps == 2 and model.detail_gate == 0.3 and set(config["meta"]["cameras"]) == {"0"}
     assert metrics["held_out"] == 1 and metrics["episodes"] == 1
 
     again = train_worldsim(cfg(exp, "expert_only=true"))  # same config: resumes at the end, trains nothing

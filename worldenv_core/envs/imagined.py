@@ -4,6 +4,14 @@
 proprio state and the arm's last motion (for the kinematic model's momentum). `step(actions)`
 advances every rollout by one action chunk: kinematics gives s_{t+1..t+K}, the camera draws
 their action maps, the world model predicts the K latents. Pixels are decoded only on request.
+
+Detail transfer (the model's `detail_gate` > 0): the autoencoder blurs what it reconstructs (its SSIM
+ceiling is below copying the last frame), while the camera is fixed and most of the scene does
+not move. So decoded frames get back the last real frame's fine detail (real minus its own
+reconstruction) wherever the decoded content has not changed from that frame's reconstruction;
+where it has (the arm, a moved object) the model's own pixels stand. The gate is soft:
+weight 1 - min(1, change / detail_gate), change = the mean absolute change over colour
+channels, max-pooled over a small window so edges of moving parts are not touched.
 """
 
 from __future__ import annotations
@@ -28,12 +36,16 @@ class ChunkResult:
 
 class ImaginedSimulator:
     def __init__(self, model: WorldSimulator, kinematics: NextStateModel, camera: PinholeCamera,
-                 sampling_steps: int | None = None, device: str | torch.device = "cpu"):
+                 sampling_steps: int | None = None, device: str | torch.device = "cpu", detail_gate: float | None = None):
         if camera.image_size != model.image_size:
             raise ValueError(f"camera renders {camera.image_size} px but the world model makes {model.image_size} px")
         self.model = model.to(device).eval()
         self.kinematics, self.camera = kinematics, camera
         self.steps = sampling_steps
+        self.detail_gate = float(model.detail_gate if detail_gate is None else detail_gate)  # None: the checkpoint's
+        if self.detail_gate < 0:
+            raise ValueError(f"detail_gate must be >= 0 (0 = off), got {self.detail_gate}")
+        self.anchor: tuple[torch.Tensor, torch.Tensor] | None = None  # (reconstruction, detail) of the last real frame
         self.device = torch.device(device)
         self.latents: torch.Tensor | None = None  # (B, T, C, h, w), all frames so far
         self.proprio: torch.Tensor | None = None
@@ -68,6 +80,9 @@ class ImaginedSimulator:
             raise ValueError(f"a rollout camera does not render {self.model.image_size} px")
         self.rollout_cameras = list(cameras) if cameras is not None else None
         self.latents = self.model.encode(frames.to(self.device))
+        if self.detail_gate > 0:
+            recon = self.model.decode(self.latents[:, -1])
+            self.anchor = (recon, frames[:, -1].to(self.device).float() / 255 - recon)
         self.proprio = proprio.to(self.device, torch.float64)
         self.carry = observed_carry(prev_proprio.to(self.device, torch.float64), self.proprio) if prev_proprio is not None else None
 
@@ -94,8 +109,20 @@ class ImaginedSimulator:
         self.latents = torch.cat([self.latents, z], dim=1)
         self.proprio = states[:, -1]
         kept = {"all": z, "last": z[:, -1:], "none": None}[decode]
-        frames = (self.model.decode(kept) * 255).round().to(torch.uint8) if kept is not None else None
+        frames = (self.render(kept) * 255).round().to(torch.uint8) if kept is not None else None
         return ChunkResult(proprio=states.float(), latents=z, action_maps=maps, frames=frames)
+
+
+    def render(self, z: torch.Tensor) -> torch.Tensor:
+        """(B, n, C, h, w) latents -> (B, n, 3, H, W) images in [0, 1], with detail transfer if on."""
+        x = self.model.decode(z)
+        if self.detail_gate <= 0:
+            return x
+        recon, detail = (a[:, None] for a in self.anchor)
+        change = (x - recon).abs().mean(dim=2, keepdim=True).flatten(0, 1)
+        change = torch.nn.functional.max_pool2d(change, 5, stride=1, padding=2).view(*x.shape[:2], 1, *x.shape[3:])
+        keep = (1 - change / self.detail_gate).clamp(min=0)
+        return (x + keep * detail).clamp(0, 1)
 
 
 @torch.no_grad()

@@ -141,19 +141,24 @@ class WorldSimulator(nn.Module):
         memory_offsets: which past frames condition a chunk, in steps before the current one
             (0 = the current frame); EVAC's sparse memory.
         sampling_steps: Euler steps of the flow sampler at inference (1-4 keeps it fast).
+        detail_gate: how imagined frames are rendered: > 0 puts the last real frame's fine detail
+            back where the decoded content has not changed (worldenv_core/envs/imagined.py); 0 off.
     """
 
     def __init__(self, image_size: int, chunk: int = 8, memory_offsets=(0, 4, 8, 16), latent_size: int = 16,
                  latent_channels: int = 4, ae_widths=(32, 64), ae_patch: int = 4, width: int = 48,
                  map_channels: int = 16, map_size: int | None = None, use_raw_actions: bool = False,
-                 sampling_steps: int = 4, action_dim: int = 7):
+                 sampling_steps: int = 4, action_dim: int = 7, detail_gate: float = 0.0):
         super().__init__()
         self.map_size = int(map_size or image_size // 2)  # action maps are drawn at this resolution
         if self.map_size % latent_size:
             raise ValueError(f"map_size {self.map_size} must be a multiple of latent_size {latent_size}")
         if sampling_steps < 1:
             raise ValueError(f"sampling_steps must be >= 1, got {sampling_steps}")
+        if detail_gate < 0:
+            raise ValueError(f"detail_gate must be >= 0 (0 = off), got {detail_gate}")
         self.image_size, self.chunk, self.sampling_steps = image_size, chunk, sampling_steps
+        self.detail_gate = float(detail_gate)
         self.memory_offsets = tuple(int(o) for o in memory_offsets)
         if self.memory_offsets[0] != 0 or any(o < 0 for o in self.memory_offsets):
             raise ValueError(f"memory_offsets must start with 0 (the current frame), got {memory_offsets}")
