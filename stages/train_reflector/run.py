@@ -25,7 +25,7 @@ from worldenv_core.data.selection import episode_key, load_split
 from worldenv_core.manifest import ArtefactError, StageRun
 from worldenv_core.metrics import binary_metrics
 from worldenv_core.models.checkpoint import save_model
-from worldenv_core.models.reflector import check_eta, prefix_scores
+from worldenv_core.models.reflector import check_eta, prefix_scores, score_prefixes
 from worldenv_core.models.reflector_data import PrefixSampler
 from worldenv_core.models.text import InstructionEncoder
 from worldenv_core.rl.termination import StopOutcome, check_steps, first_stop, first_success, success_labels, termination_metrics
@@ -49,6 +49,11 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"camera {cfg.camera!r} is not one of the task's cameras {list(cfg.task.cameras)}")
     if not 0.0 <= cfg.train.hard_negative_fraction <= 1.0:
         raise ConfigError(f"train.hard_negative_fraction must be in [0, 1], got {cfg.train.hard_negative_fraction}")
+    if cfg.train.mine.every < 0 or (cfg.train.mine.every and cfg.train.checkpoint_every % cfg.train.mine.every):
+        raise ConfigError(f"train.mine.every must be 0 (off) or divide train.checkpoint_every "
+                          f"({cfg.train.checkpoint_every}) so a resumed run mines what it mined; got {cfg.train.mine.every}")
+    if not 0.0 <= cfg.train.mine.threshold <= 1.0:
+        raise ConfigError(f"train.mine.threshold must be in [0, 1], got {cfg.train.mine.threshold}")
     if cfg.train.batch_size < 2:
         raise ConfigError("train.batch_size must be at least 2 (half positives, half negatives)")
 
@@ -117,6 +122,9 @@ def train(cfg, model, model_cfg: dict, meta: dict, sampler: PrefixSampler, encod
     ckpts = Checkpoints(work)
     step, history = ckpts.restore(model, {"reflector": opt})
     total = cfg.train.steps
+    mine_every = cfg.train.mine.every
+    if mine_every and mine_every <= step < total:  # resumed: the hard set the run had (checkpoints fall on mining steps)
+        _mine(cfg, model, sampler, encoder, device, step - step % mine_every)
     bar = tqdm(range(step, total), initial=step, total=total, desc="train_reflector", dynamic_ncols=True)
     running = RunningMeans(history, cfg.train.log_every, bar)
     for step in bar:
@@ -134,10 +142,24 @@ def train(cfg, model, model_cfg: dict, meta: dict, sampler: PrefixSampler, encod
         running.add(bce=loss.item(), batch_accuracy=((logits > 0).float() == label).float().mean().item())
         done = step + 1
         running.end_step(done, total)
+        if mine_every and done % mine_every == 0 and done < total:
+            _mine(cfg, model, sampler, encoder, device, done)
         if done % cfg.train.checkpoint_every == 0 or done == total:
             ckpts.save(done, model, model_cfg, meta, {"reflector": opt}, history)
     bar.close()
     return history
+
+
+def _mine(cfg, model, sampler: PrefixSampler, encoder, device, step: int) -> None:
+    """Score every training episode's negative chunk boundaries with the current model and make
+    the high-scoring ones (near misses) hard negatives until the next mining."""
+    model.eval()
+    lang = encoder(sampler.instructions).to(device)
+    mined = sampler.mine(lambda i, frames, steps: score_prefixes(model, frames.to(device), lang[i], steps).cpu(),
+                         cfg.train.mine.threshold)
+    sampler.set_mined(mined)
+    log.info("step %d: %d negative frames scored above %.2f are hard negatives now (%d in all)", step, len(mined),
+             cfg.train.mine.threshold, len(sampler.hard))
 
 
 def _augment(model, frames: torch.Tensor, mask: torch.Tensor, shift: int, generator: torch.Generator):

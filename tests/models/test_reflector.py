@@ -148,3 +148,22 @@ def test_frozen_hf_tower_trains_only_the_aggregator_and_head(tmp_path):
     logits = model(frames, torch.ones(2, 3, dtype=torch.bool), torch.randn(2, 16))
     logits.sum().backward()
     assert all(p.grad is None for p in model.frame_encoder.parameters())
+
+
+def test_mining_makes_high_scoring_negatives_hard_and_never_positives():
+    eps = episodes(2, 6)
+    sampler = PrefixSampler(eps, "agentview", stride=4, max_frames=8, hard_negative_fraction=1.0, hard_window=4)
+    window = {tuple(x) for x in sampler.hard}
+    # a "model" that calls every prefix ending at frame 8 of episode 0 and frame 12 of episode 3 a success
+    fake = {(0, 8), (3, 12)}
+    mined = sampler.mine(lambda i, frames, steps: [0.9 if (i, s) in fake else 0.1 for s in steps], threshold=0.5)
+    got = {tuple(x) for x in mined}
+    expect = {(i, t) for i, s in fake for t in range(s - 3, s + 1) if not sampler.labels[i][t]}
+    assert got == expect and expect  # the chunk of frames before each mined boundary, negatives only
+    assert all(not sampler.labels[i][t] for i, t in got)
+    sampler.set_mined(mined)
+    assert {tuple(x) for x in sampler.hard} == window | got
+    drawn = sampler.batch(64, seed=0)["label"]
+    assert drawn.sum() == 32  # still half positives
+    sampler.set_mined([])
+    assert {tuple(x) for x in sampler.hard} == window

@@ -15,7 +15,7 @@ from worldenv_core.stage import ConfigError, compose_config
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
 SMALL = ["train.steps=6", "train.batch_size=4", "train.log_every=2", "train.checkpoint_every=3", "holdout_every=2",
          "reflector.d_model=16", "reflector.layers=1", "reflector.heads=2", "reflector.frame_encoder.widths=[8,16]",
-         "reflector.frame_encoder.keypoints=4", "plots=1"]
+         "reflector.frame_encoder.keypoints=4", "plots=1", "train.mine.every=3"]
 
 
 def cfg(stage, exp, *overrides):
@@ -57,6 +57,8 @@ def test_train_reflector_resumes_and_rejects_bad_settings(trained):
     assert train_reflector(cfg("train_reflector", exp, *SMALL, "expert_only=true"))["train_wall_s"] < 5
     with pytest.raises(ConfigError, match=r"eta .* must be in \[0, 1\], got 1.5"):
         train_reflector(cfg("train_reflector", exp, *SMALL, "eta=1.5"))
+    with pytest.raises(ConfigError, match="train.mine.every must .* divide train.checkpoint_every"):
+        train_reflector(cfg("train_reflector", exp, *SMALL, "train.mine.every=2"))
     with pytest.raises(ConfigError, match="source=policy.*expert_only=true"):
         train_reflector(cfg("train_reflector", exp, *SMALL))
 

@@ -5,7 +5,9 @@ t, t - K, t - 2K, ... and the first frame, uniformly sub-sampled to the model's 
 Its label is y_t (1 from the oracle's first success onward). Positives are rare (a demo that
 stops at success has one positive frame), so each batch draws half positives and half
 negatives; `hard_negative_fraction` of the negatives come from the last `hard_window` frames
-before a success, where a premature stop would cost an episode.
+before a success, where a premature stop would cost an episode, plus (when mining is on)
+the negatives the model itself currently scores highest: the near misses of failed rollouts,
+which look almost like success and are what false stops are made of.
 """
 
 from __future__ import annotations
@@ -33,9 +35,9 @@ class PrefixSampler:
         self.frames = [torch.from_numpy(ep.images[camera]).permute(0, 3, 1, 2) for ep in episodes]  # (T+1, 3, H, W)
         self.instructions = [ep.meta.instruction for ep in episodes]
         self.stride, self.max_frames = int(stride), int(max_frames)
+        self.labels = [success_labels(ep.success) for ep in episodes]
         pos, neg, hard = [], [], []
-        for i, ep in enumerate(episodes):
-            y = success_labels(ep.success)
+        for i, y in enumerate(self.labels):
             for t in range(len(y)):
                 (pos if y[t] else neg).append((i, t))
             if y.any():
@@ -45,7 +47,27 @@ class PrefixSampler:
             raise ValueError(f"the reflector needs successful and unsuccessful frames; got {len(pos)} positive "
                              f"and {len(neg)} negative frames from {len(episodes)} episodes")
         self.pos, self.neg, self.hard = np.array(pos), np.array(neg), np.array(hard or neg)
+        self.window_hard = self.hard
         self.hard_fraction = float(hard_negative_fraction)
+
+    def set_mined(self, mined) -> None:
+        """Hard negatives are the pre-success window plus these (episode, frame) pairs."""
+        mined = np.asarray(mined, dtype=np.int64).reshape(-1, 2)
+        self.hard = np.concatenate([self.window_hard, mined]) if len(mined) else self.window_hard
+
+    def mine(self, scores_fn, threshold: float) -> np.ndarray:
+        """Negative prefix ends (at the chunk boundaries a rollout is scored at) that
+        `scores_fn(episode index, frames, steps) -> R per step` puts above `threshold`, each
+        with the `stride` - 1 frames before it (the prefixes ending there look the same)."""
+        out = []
+        for i, frames in enumerate(self.frames):
+            steps = np.arange(0, len(frames), self.stride)
+            steps = steps[~self.labels[i][steps]]
+            if not len(steps):
+                continue
+            high = steps[np.asarray(scores_fn(i, frames, steps.tolist())) > threshold]
+            out += [(i, t) for s in high for t in range(max(0, s - self.stride + 1), s + 1) if not self.labels[i][t]]
+        return np.array(out, dtype=np.int64).reshape(-1, 2)
 
     def counts(self) -> dict:
         return {"positive_frames": len(self.pos), "negative_frames": len(self.neg), "hard_negative_frames": len(self.hard)}
