@@ -43,3 +43,18 @@ def test_train_worldsim_records_checkpoint_fidelity_and_resumes(demo_experiment)
 
     again = train_worldsim(cfg(exp, "expert_only=true"))  # same config: resumes at the end, trains nothing
     assert again["train_wall_s"] < 5
+
+
+def test_fidelity_tool_reproduces_the_recorded_report_and_sweeps_the_detail_gate(demo_experiment):
+    from stages.train_worldsim.fidelity import main as fidelity
+
+    train_worldsim(cfg(demo_experiment, "expert_only=true"))  # (resumes the finished run of the test above)
+    m = Manifest(demo_experiment)
+    rec = m.latest("train_worldsim", task="tiny", data="expert")
+    recorded = json.loads(next(p for p in m.resolve(rec) if p.name == "fidelity.json").read_text())["fidelity"]
+    rows = fidelity([str(demo_experiment), "--record", rec.id, "--detail-gate", "0", "0.3"])
+    assert [(r["detail_gate"], r["horizon"]) for r in rows] == [(0.0, 8), (0.0, 16), (0.3, 8), (0.3, 16)]
+    for r in rows:  # same seed, same held-out episode: the numbers the stage recorded
+        v = recorded[str(r["horizon"])]
+        want = (v["plain_psnr"], v["plain_ssim"]) if r["detail_gate"] == 0 else (v["model_psnr"], v["model_ssim"])
+        assert (r["model_psnr"], r["model_ssim"]) == pytest.approx(want, abs=1e-6)

@@ -1,0 +1,62 @@
+"""Re-measure a trained world simulator's open-loop fidelity with other render settings.
+
+    python -m stages.train_worldsim.fidelity outputs/libero_goal-small [--record ID]
+        [--detail-gate 0 0.1 0.3] [--sampling-steps 1 2]
+
+Reads the train_worldsim record (default: the newest), its checkpoint and the same held-out
+episodes its training held out, and prints PSNR / SSIM beside copy-the-last-frame for every
+combination of detail gate and sampling steps: the sweep behind the default `detail_gate`.
+Nothing is trained and nothing is written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+
+from omegaconf import OmegaConf
+
+from worldenv_core.data.mcap_io import read_episode
+from worldenv_core.data.selection import holdout_split
+from worldenv_core.kinematics.camera import PinholeCamera
+from worldenv_core.kinematics.next_state import NextStateModel
+from worldenv_core.manifest import Manifest
+from worldenv_core.models.checkpoint import load_model
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    from stages.train_worldsim.run import _fidelity
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("experiment_dir")
+    ap.add_argument("--record", help="a train_worldsim record id (default: the newest)")
+    ap.add_argument("--detail-gate", type=float, nargs="+", default=[None], help="default: the checkpoint's")
+    ap.add_argument("--sampling-steps", type=int, nargs="+", default=[None], help="default: the checkpoint's")
+    args = ap.parse_args(argv)
+    manifest = Manifest(args.experiment_dir)
+    record = manifest.get(args.record) if args.record else manifest.latest("train_worldsim")
+    cfg = OmegaConf.create(record.config)
+    paths = [p for rid in record.inputs for p in manifest.resolve(manifest.get(rid), kind="episodes")]
+    _, held = holdout_split(paths, cfg.holdout_every)
+    held_eps = [read_episode(p, cameras=[cfg.camera]) for p in held]
+    model, config = load_model(manifest.resolve(record, kind="checkpoint")[0].parent)
+    meta = config["meta"]
+    kinematics = NextStateModel(**meta["kinematics"])
+    cameras = {int(t): PinholeCamera.from_dict(c) for t, c in meta["cameras"].items()}
+    print(f"{record.id}: {len(held_eps)} held-out episodes, {cfg.fidelity.starts_per_episode} starts each\n")
+    print("| detail gate | sampling steps | horizon | PSNR model | PSNR copy-last | SSIM model | SSIM copy-last |")
+    print("|---|---|---|---|---|---|---|")
+    rows = []
+    for gate, steps in itertools.product(args.detail_gate, args.sampling_steps):
+        gate = model.detail_gate if gate is None else gate
+        model.sampling_steps = steps or model.sampling_steps
+        fidelity, _ = _fidelity(cfg, model, kinematics, cameras, held_eps, gate)
+        for h, v in fidelity.items():
+            rows.append({"detail_gate": gate, "sampling_steps": model.sampling_steps, "horizon": h, **v})
+            print(f"| {gate:g} | {model.sampling_steps} | {h} | {v['model_psnr']:.2f} | {v['copy_psnr']:.2f} | "
+                  f"{v['model_ssim']:.3f} | {v['copy_ssim']:.3f} |", flush=True)
+    return rows
+
+
+if __name__ == "__main__":
+    main()
