@@ -5,7 +5,8 @@ one camera render, the throughput of expert collection (kept frames per second),
 env-steps per second of the world simulator at batch 8 against real env-steps per second
 (physics + a render of the same camera at the same resolution every step), as a ratio.
 The world model's cost does not depend on its weights, so an untrained model of the configured
-architecture is timed unless `--worldsim <checkpoint>` names a trained one.
+architecture is timed unless `--worldsim <checkpoint>` names a trained one. The world model
+runs on one torch thread by default, as the simulator steps on one core (`--torch-threads`).
 """
 
 from __future__ import annotations
@@ -130,7 +131,12 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=8, help="imagined rollouts per world-model call")
     parser.add_argument("--worldsim", default=None, help="a train_worldsim checkpoint (default: untrained, same cost)")
     parser.add_argument("--only", choices=["simulator", "worldsim"], default=None)
+    parser.add_argument("--torch-threads", type=int, default=1,
+                        help="threads for the world model (default 1: the simulator steps on one core too)")
     args = parser.parse_args()
+    import torch
+
+    torch.set_num_threads(args.torch_threads)
     result = {}
     if args.only != "worldsim":
         result["simulator"] = simulator_costs(args.suite, args.task_id, args.image_size, args.cameras, args.repeats)
