@@ -161,15 +161,23 @@ def write_report(experiment_dir: str | Path, task: str) -> Path:
                 plain = f"{v['plain_ssim']:.3f}" if "plain_ssim" in v else "-"
                 lines.append(f"| {ws.tags.get('data')} | {h} | {v['model_psnr']:.2f} | {v['copy_psnr']:.2f} | "
                              f"{v['model_ssim']:.3f} | {v['copy_ssim']:.3f} | {plain} |")
-    refl = _newest(manifest.find("train_reflector", task=task))
-    acc = _report_json(manifest, refl, "reflector_eval.json")
-    if acc:
-        lines += ["", f"## Reflector (eta {acc['eta']}, {acc['held_out_episodes']} held-out episodes)", "",
-                  "| video | step accuracy | step F1 | step AUROC | termination F1 |", "|---|---|---|---|---|"]
-        for kind in ("real", "imagined"):
-            if kind in acc:
-                p, t = acc[kind]["per_step"], acc[kind]["termination"]["all"]
-                lines.append(f"| {kind} | {p['accuracy']:.3f} | {p['f1']:.3f} | {p['auroc']:.3f} | {t['f1']:.3f} |")
+    # Every recent reflector, not only the newest: evaluations and post-training name the one they used.
+    reflectors = [(r, _report_json(manifest, r, "reflector_eval.json")) for r in manifest.find("train_reflector", task=task)[-4:]]
+    reflectors = [(r, acc) for r, acc in reversed(reflectors) if acc]
+    if reflectors:
+        lines += ["", "## Reflector (held-out episodes, newest first)", "",
+                  "| record | data | hard-negative mining | eta | held out | video | step accuracy | step F1 | step AUROC | "
+                  "termination F1 |", "|---|---|---|---|---|---|---|---|---|---|"]
+        for r, acc in reflectors:
+            mine = (r.config.get("train") or {}).get("mine") or {}
+            mining = f"every {mine['every']}, > {mine['threshold']}" if mine.get("every") else "off"
+            ckpt = r.files("checkpoint")
+            run = f"`{r.id}` ({_short(str(Path(ckpt[0].path).parent))})" if ckpt else f"`{r.id}`"  # the name evaluations give above
+            for kind in ("real", "imagined"):
+                if kind in acc:
+                    p, t = acc[kind]["per_step"], acc[kind]["termination"]["all"]
+                    lines.append(f"| {run} | {r.tags.get('data')} | {mining} | {acc['eta']} | {acc['held_out_episodes']} "
+                                 f"| {kind} | {p['accuracy']:.3f} | {p['f1']:.3f} | {p['auroc']:.3f} | {t['f1']:.3f} |")
 
     lines += ["", "## Wall time per stage (newest run of each)", "", "| stage | tags | wall s |", "|---|---|---|"]
     seen = {}

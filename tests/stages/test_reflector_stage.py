@@ -82,6 +82,8 @@ def test_evaluate_with_reflector_termination(with_policy):
     assert out["reflector_termination"]["episodes"] == 1
     report = (Path(exp) / "report" / "report.md").read_text()  # the experiment report includes this evaluation
     assert "sft / reflector" in report and "## Reflector" in report and (Path(exp) / "report" / "success.png").exists()
+    used = Path(out["reflector"]).parts[-3:-1]  # the evaluation names its reflector's run; the reflector table lists it too
+    assert report.count("/".join(used)) >= 2
     with pytest.raises(ConfigError, match=r"eta .* must be in \[0, 1\]"):
         evaluate(cfg("evaluate", exp, "termination=reflector", "eta=-1", "init_states=1"))
 
