@@ -5,14 +5,15 @@ one camera render, the throughput of expert collection (kept frames per second),
 env-steps per second of the world simulator at batch 8 against real env-steps per second
 (physics + a render of the same camera at the same resolution every step), as a ratio.
 The world model's cost does not depend on its weights, so an untrained model of the configured
-architecture is timed unless `--worldsim <checkpoint>` names a trained one. The world model
-runs on one torch thread by default, as the simulator steps on one core (`--torch-threads`).
+architecture is timed unless `--worldsim <checkpoint>` names a trained one. Both sides get the
+same CPU threads (`--threads`, default 1: torch threads, and the software renderer's threads).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import time
 
@@ -106,7 +107,7 @@ def world_model_speed(suite: str, task_id: int, image_size: int, camera: str, re
     out = {"real_env_steps_per_s": {"every_frame": round(1000 / real_ms, 2),
                                     "chunk_boundary_frames": round(1000 / real_chunk_ms, 2)},
            "batch": batch, "chunk": chunk, "params_M": round(sum(p.numel() for p in model.parameters()) / 1e6, 2),
-           "torch_threads": torch.get_num_threads()}
+           "threads": torch.get_num_threads()}
     actions = torch.from_numpy(rng.uniform(-0.3, 0.3, (batch, chunk, 7))).float()
     for steps in sampling_steps:
         sim = ImaginedSimulator(model, NextStateModel(), cam, sampling_steps=steps)
@@ -131,12 +132,16 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=8, help="imagined rollouts per world-model call")
     parser.add_argument("--worldsim", default=None, help="a train_worldsim checkpoint (default: untrained, same cost)")
     parser.add_argument("--only", choices=["simulator", "worldsim"], default=None)
-    parser.add_argument("--torch-threads", type=int, default=1,
-                        help="threads for the world model (default 1: the simulator steps on one core too)")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="CPU threads for each side: the world model's torch threads and the simulator's "
+                             "software renderer (Mesa llvmpipe, LP_NUM_THREADS); the same on both for a fair ratio")
     args = parser.parse_args()
     import torch
 
-    torch.set_num_threads(args.torch_threads)
+    # Before any env exists: llvmpipe reads LP_NUM_THREADS when the first GL context is made, and
+    # otherwise renders on every core while torch may be held to one, which skews the ratio.
+    os.environ["LP_NUM_THREADS"] = str(args.threads)
+    torch.set_num_threads(args.threads)
     result = {}
     if args.only != "worldsim":
         result["simulator"] = simulator_costs(args.suite, args.task_id, args.image_size, args.cameras, args.repeats)
