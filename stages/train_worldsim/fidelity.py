@@ -1,11 +1,12 @@
 """Re-measure a trained world simulator's open-loop fidelity with other render settings.
 
     python -m stages.train_worldsim.fidelity outputs/libero_goal-small [--record ID]
-        [--detail-gate 0 0.1 0.3] [--sampling-steps 1 2]
+        [--detail-gate 0 0.1 0.3] [--sampling-steps 1 2] [--noise-scale 1 0]
 
 Reads the train_worldsim record (default: the newest), its checkpoint and the same held-out
 episodes its training held out, and prints PSNR / SSIM beside copy-the-last-frame for every
-combination of detail gate and sampling steps: the sweep behind the default `detail_gate`.
+combination of detail gate, sampling steps and sampler temperature: the sweep behind the
+defaults `detail_gate` and `noise_scale`.
 Nothing is trained and nothing is written.
 """
 
@@ -32,6 +33,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--record", help="a train_worldsim record id (default: the newest)")
     ap.add_argument("--detail-gate", type=float, nargs="+", default=[None], help="default: the checkpoint's")
     ap.add_argument("--sampling-steps", type=int, nargs="+", default=[None], help="default: the checkpoint's")
+    ap.add_argument("--noise-scale", type=float, nargs="+", default=[None], help="default: the checkpoint's")
     args = ap.parse_args(argv)
     manifest = Manifest(args.experiment_dir)
     record = manifest.get(args.record) if args.record else manifest.latest("train_worldsim")
@@ -44,17 +46,21 @@ def main(argv: list[str] | None = None) -> list[dict]:
     kinematics = NextStateModel(**meta["kinematics"])
     cameras = {int(t): PinholeCamera.from_dict(c) for t, c in meta["cameras"].items()}
     print(f"{record.id}: {len(held_eps)} held-out episodes, {cfg.fidelity.starts_per_episode} starts each\n")
-    print("| detail gate | sampling steps | horizon | PSNR model | PSNR copy-last | SSIM model | SSIM copy-last |")
-    print("|---|---|---|---|---|---|---|")
+    print("| detail gate | sampling steps | noise scale | horizon | PSNR model | PSNR copy-last | SSIM model | "
+          "SSIM copy-last |")
+    print("|---|---|---|---|---|---|---|---|")
     rows = []
-    for gate, steps in itertools.product(args.detail_gate, args.sampling_steps):
+    default_steps, default_noise = model.sampling_steps, model.noise_scale
+    for gate, steps, noise in itertools.product(args.detail_gate, args.sampling_steps, args.noise_scale):
         gate = model.detail_gate if gate is None else gate
-        model.sampling_steps = steps or model.sampling_steps
+        model.sampling_steps = steps or default_steps
+        model.noise_scale = default_noise if noise is None else noise
         fidelity, _ = _fidelity(cfg, model, kinematics, cameras, held_eps, gate)
         for h, v in fidelity.items():
-            rows.append({"detail_gate": gate, "sampling_steps": model.sampling_steps, "horizon": h, **v})
-            print(f"| {gate:g} | {model.sampling_steps} | {h} | {v['model_psnr']:.2f} | {v['copy_psnr']:.2f} | "
-                  f"{v['model_ssim']:.3f} | {v['copy_ssim']:.3f} |", flush=True)
+            rows.append({"detail_gate": gate, "sampling_steps": model.sampling_steps, "noise_scale": model.noise_scale,
+                         "horizon": h, **v})
+            print(f"| {gate:g} | {model.sampling_steps} | {model.noise_scale:g} | {h} | {v['model_psnr']:.2f} | "
+                  f"{v['copy_psnr']:.2f} | {v['model_ssim']:.3f} | {v['copy_ssim']:.3f} |", flush=True)
     return rows
 
 

@@ -130,3 +130,21 @@ def test_detail_transfer_restores_the_real_frame_where_nothing_changed():
     torch.testing.assert_close(plain.render(plain.latents[:, -1:]), model.decode(plain.latents[:, -1:]))
     with pytest.raises(ValueError, match="detail_gate"):
         WorldSimulator(**{**TINY, "detail_gate": -1.0})
+
+
+def test_zero_temperature_one_step_sampling_is_the_flow_mean():
+    torch.manual_seed(0)
+    model = WorldSimulator(**{**TINY, "noise_scale": 0.0}).eval()
+    torch.nn.init.normal_(model.velocity.out[-1].weight, std=0.1)  # the zero-initialised head would predict nothing
+    mem, maps, acts = torch.randn(2, 2, 4, 16, 16), torch.rand(2, 4, 3, 32, 32), torch.randn(2, 4, 7)
+    a = model.predict_latents(mem, maps, acts, steps=1, generator=torch.Generator().manual_seed(1))
+    b = model.predict_latents(mem, maps, acts, steps=1, generator=torch.Generator().manual_seed(2))
+    torch.testing.assert_close(a, b)  # no noise: the same answer whatever the generator
+    m, mp, idx, act = model._condition(mem, maps, acts)
+    with torch.no_grad():  # one Euler step from x0 = 0 at t = 0 is the velocity there: E[x1] - 0
+        v = model.velocity(torch.zeros(8, 4, 16, 16), torch.zeros(8), m, mp, idx, act)
+    torch.testing.assert_close(a, mem[:, :1] + v.view(2, 4, 4, 16, 16) * model.delta_scale)
+    noisy = model.predict_latents(mem, maps, acts, steps=1, noise_scale=1.0, generator=torch.Generator().manual_seed(1))
+    assert not torch.allclose(a, noisy)
+    with pytest.raises(ValueError, match="noise_scale"):
+        WorldSimulator(**{**TINY, "noise_scale": 1.5})

@@ -52,9 +52,12 @@ def test_fidelity_tool_reproduces_the_recorded_report_and_sweeps_the_detail_gate
     m = Manifest(demo_experiment)
     rec = m.latest("train_worldsim", task="tiny", data="expert")
     recorded = json.loads(next(p for p in m.resolve(rec) if p.name == "fidelity.json").read_text())["fidelity"]
-    rows = fidelity([str(demo_experiment), "--record", rec.id, "--detail-gate", "0", "0.3"])
-    assert [(r["detail_gate"], r["horizon"]) for r in rows] == [(0.0, 8), (0.0, 16), (0.3, 8), (0.3, 16)]
-    for r in rows:  # same seed, same held-out episode: the numbers the stage recorded
+    rows = fidelity([str(demo_experiment), "--record", rec.id, "--detail-gate", "0", "0.3", "--noise-scale", "1", "0"])
+    assert [(r["detail_gate"], r["noise_scale"], r["horizon"]) for r in rows] == [
+        (g, n, h) for g in (0.0, 0.3) for n in (1.0, 0.0) for h in (8, 16)]
+    mean = {(r["detail_gate"], r["horizon"]): r["model_psnr"] for r in rows if r["noise_scale"] == 0}
+    assert all(mean[(r["detail_gate"], r["horizon"])] != r["model_psnr"] for r in rows if r["noise_scale"] == 1)
+    for r in (r for r in rows if r["noise_scale"] == 1):  # same seed, same held-out episode: the recorded numbers
         v = recorded[str(r["horizon"])]
         want = (v["plain_psnr"], v["plain_ssim"]) if r["detail_gate"] == 0 else (v["model_psnr"], v["model_ssim"])
         assert (r["model_psnr"], r["model_ssim"]) == pytest.approx(want, abs=1e-6)

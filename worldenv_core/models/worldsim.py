@@ -143,12 +143,16 @@ class WorldSimulator(nn.Module):
         sampling_steps: Euler steps of the flow sampler at inference (1-4 keeps it fast).
         detail_gate: how imagined frames are rendered: > 0 puts the last real frame's fine detail
             back where the decoded content has not changed (worldenv_core/envs/imagined.py); 0 off.
+        noise_scale: the sampler's temperature, the scale of the noise the flow starts from. 1 draws
+            samples of the learned distribution; 0 starts every rollout from the same point, and
+            with one Euler step gives the flow's conditional mean (v(x0, 0) = E[x1] - x0), the
+            prediction with the least squared error: sharper for metrics, no per-rollout variety.
     """
 
     def __init__(self, image_size: int, chunk: int = 8, memory_offsets=(0, 4, 8, 16), latent_size: int = 16,
                  latent_channels: int = 4, ae_widths=(32, 64), ae_patch: int = 4, width: int = 48,
                  map_channels: int = 16, map_size: int | None = None, use_raw_actions: bool = False,
-                 sampling_steps: int = 4, action_dim: int = 7, detail_gate: float = 0.0):
+                 sampling_steps: int = 4, action_dim: int = 7, detail_gate: float = 0.0, noise_scale: float = 1.0):
         super().__init__()
         self.map_size = int(map_size or image_size // 2)  # action maps are drawn at this resolution
         if self.map_size % latent_size:
@@ -159,6 +163,9 @@ class WorldSimulator(nn.Module):
             raise ValueError(f"detail_gate must be >= 0 (0 = off), got {detail_gate}")
         self.image_size, self.chunk, self.sampling_steps = image_size, chunk, sampling_steps
         self.detail_gate = float(detail_gate)
+        if not 0.0 <= noise_scale <= 1.0:
+            raise ValueError(f"noise_scale must be in [0, 1], got {noise_scale}")
+        self.noise_scale = float(noise_scale)
         self.memory_offsets = tuple(int(o) for o in memory_offsets)
         if self.memory_offsets[0] != 0 or any(o < 0 for o in self.memory_offsets):
             raise ValueError(f"memory_offsets must start with 0 (the current frame), got {memory_offsets}")
@@ -215,15 +222,18 @@ class WorldSimulator(nn.Module):
     # -- inference -----------------------------------------------------------------------------
     @torch.no_grad()
     def predict_latents(self, memory: torch.Tensor, action_maps: torch.Tensor, actions: torch.Tensor | None = None,
-                        steps: int | None = None, generator: torch.Generator | None = None) -> torch.Tensor:
+                        steps: int | None = None, generator: torch.Generator | None = None,
+                        noise_scale: float | None = None) -> torch.Tensor:
         """memory (B, M, C, h, w) scaled latents, action_maps (B, K, 3, S, S) in [0, 1] (S = map_size) ->
-        next K latents (B, K, C, h, w), by `steps` Euler steps of the flow (default: the config's)."""
+        next K latents (B, K, C, h, w), by `steps` Euler steps of the flow from noise of scale
+        `noise_scale` (defaults: the config's)."""
         steps = int(steps or self.sampling_steps)
         if steps < 1:
             raise ValueError(f"sampling steps must be >= 1, got {steps}")
+        noise_scale = self.noise_scale if noise_scale is None else float(noise_scale)
         b, k = action_maps.shape[:2]
         mem, maps, index, act = self._condition(memory, action_maps, actions)
-        x = torch.randn((b * k, *memory.shape[2:]), generator=generator, device=memory.device)
+        x = torch.randn((b * k, *memory.shape[2:]), generator=generator, device=memory.device) * noise_scale
         for i in range(steps):
             t = torch.full((b * k,), i / steps, device=x.device)
             x = x + self.velocity(x, t, mem, maps, index, act) / steps
