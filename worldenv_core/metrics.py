@@ -19,20 +19,26 @@ def _gaussian_window(size: int = 11, sigma: float = 1.5) -> torch.Tensor:
     return g[:, None] * g[None, :]
 
 
-def ssim(pred: torch.Tensor, target: torch.Tensor, window: int = 11) -> torch.Tensor:
-    """Structural similarity (Wang et al. 2004; Gaussian window 11, sigma 1.5, per channel,
-    averaged) per image (...,)."""
+def ssim_map(pred: torch.Tensor, target: torch.Tensor, window: int = 11) -> torch.Tensor:
+    """Local structural similarity (Wang et al. 2004; Gaussian window 11, sigma 1.5, per channel,
+    averaged over channels): (..., 3, H, W) -> (..., H - window + 1, W - window + 1), valid
+    convolution so there are no padding artefacts."""
     lead = pred.shape[:-3]
     x = pred.float().reshape(-1, *pred.shape[-3:])
     y = target.float().reshape(-1, *target.shape[-3:])
     c = x.shape[1]
     w = _gaussian_window(window).to(x.device)[None, None].expand(c, 1, -1, -1)
-    blur = lambda v: F.conv2d(v, w, groups=c)  # noqa: E731  valid convolution: no padding artefacts
+    blur = lambda v: F.conv2d(v, w, groups=c)  # noqa: E731
     mx, my = blur(x), blur(y)
     sxx, syy, sxy = blur(x * x) - mx ** 2, blur(y * y) - my ** 2, blur(x * y) - mx * my
     c1, c2 = 0.01 ** 2, 0.03 ** 2
     s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx ** 2 + my ** 2 + c1) * (sxx + syy + c2))
-    return s.flatten(1).mean(1).reshape(lead)
+    return s.mean(1).reshape(*lead, *s.shape[-2:])
+
+
+def ssim(pred: torch.Tensor, target: torch.Tensor, window: int = 11) -> torch.Tensor:
+    """Structural similarity per image (...,): the mean of `ssim_map`."""
+    return ssim_map(pred, target, window).flatten(-2).mean(-1)
 
 
 # ---- binary classification (the reflector's per-step success prediction) ----

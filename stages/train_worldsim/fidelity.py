@@ -1,12 +1,12 @@
 """Re-measure a trained world simulator's open-loop fidelity with other render settings.
 
     python -m stages.train_worldsim.fidelity outputs/libero_goal-small [--record ID]
-        [--detail-gate 0 0.1 0.3] [--sampling-steps 1 2] [--noise-scale 1 0]
+        [--detail-gate 0 0.1 0.3] [--sampling-steps 1 2] [--noise-scale 1 0] [--static-snap 0 0.2]
 
 Reads the train_worldsim record (default: the newest), its checkpoint and the same held-out
 episodes its training held out, and prints PSNR / SSIM beside copy-the-last-frame for every
-combination of detail gate, sampling steps and sampler temperature: the sweep behind the
-defaults `detail_gate` and `noise_scale`.
+combination of detail gate, sampling steps, sampler temperature and static snap: the sweep
+behind the defaults `detail_gate`, `noise_scale` and `static_snap`.
 Nothing is trained and nothing is written.
 """
 
@@ -34,6 +34,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--detail-gate", type=float, nargs="+", default=[None], help="default: the checkpoint's")
     ap.add_argument("--sampling-steps", type=int, nargs="+", default=[None], help="default: the checkpoint's")
     ap.add_argument("--noise-scale", type=float, nargs="+", default=[None], help="default: the checkpoint's")
+    ap.add_argument("--static-snap", type=float, nargs="+", default=[None], help="default: the checkpoint's")
     args = ap.parse_args(argv)
     manifest = Manifest(args.experiment_dir)
     record = manifest.get(args.record) if args.record else manifest.latest("train_worldsim")
@@ -46,21 +47,26 @@ def main(argv: list[str] | None = None) -> list[dict]:
     kinematics = NextStateModel(**meta["kinematics"])
     cameras = {int(t): PinholeCamera.from_dict(c) for t, c in meta["cameras"].items()}
     print(f"{record.id}: {len(held_eps)} held-out episodes, {cfg.fidelity.starts_per_episode} starts each\n")
-    print("| detail gate | sampling steps | noise scale | horizon | PSNR model | PSNR copy-last | SSIM model | "
-          "SSIM copy-last |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| detail gate | sampling steps | noise scale | static snap | horizon | PSNR model | PSNR copy-last | "
+          "SSIM model | SSIM copy-last | SSIM static: model / copy | SSIM moving: model / copy |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     rows = []
-    default_steps, default_noise = model.sampling_steps, model.noise_scale
-    for gate, steps, noise in itertools.product(args.detail_gate, args.sampling_steps, args.noise_scale):
+    defaults = model.sampling_steps, model.noise_scale, model.static_snap
+    for gate, steps, noise, snap in itertools.product(args.detail_gate, args.sampling_steps, args.noise_scale,
+                                                      args.static_snap):
         gate = model.detail_gate if gate is None else gate
-        model.sampling_steps = steps or default_steps
-        model.noise_scale = default_noise if noise is None else noise
+        model.sampling_steps = steps or defaults[0]
+        model.noise_scale = defaults[1] if noise is None else noise
+        model.static_snap = defaults[2] if snap is None else snap
         fidelity, _ = _fidelity(cfg, model, kinematics, cameras, held_eps, gate)
         for h, v in fidelity.items():
             rows.append({"detail_gate": gate, "sampling_steps": model.sampling_steps, "noise_scale": model.noise_scale,
-                         "horizon": h, **v})
-            print(f"| {gate:g} | {model.sampling_steps} | {model.noise_scale:g} | {h} | {v['model_psnr']:.2f} | "
-                  f"{v['copy_psnr']:.2f} | {v['model_ssim']:.3f} | {v['copy_ssim']:.3f} |", flush=True)
+                         "static_snap": model.static_snap, "horizon": h, **v})
+            print(f"| {gate:g} | {model.sampling_steps} | {model.noise_scale:g} | {model.static_snap:g} | {h} | "
+                  f"{v['model_psnr']:.2f} | {v['copy_psnr']:.2f} | {v['model_ssim']:.3f} | {v['copy_ssim']:.3f} | "
+                  f"{v['model_ssim_static']:.3f} / {v['copy_ssim_static']:.3f} | "
+                  f"{v['model_ssim_moving']:.3f} / {v['copy_ssim_moving']:.3f} |",
+                  flush=True)
     return rows
 
 

@@ -175,8 +175,15 @@ def _fidelity(cfg, model, kinematics, cameras, held_eps, detail_gate: float) -> 
         parts = [r[h] for r in per_task if r[h]["n"]]
         n = sum(p["n"] for p in parts)
         if n:
-            fidelity[h] = {k: sum(p[k] * p["n"] for p in parts) / n for k in parts[0] if k != "n"} | {"n": n}
+            fidelity[h] = {k: _weighted_mean([(p[k], p["n"]) for p in parts]) for k in parts[0] if k != "n"} | {"n": n}
     return fidelity, videos
+
+
+def _weighted_mean(values_weights) -> float:
+    """Mean over tasks weighted by their sample counts, skipping tasks without a value (nan: e.g.
+    no moving region at that horizon)."""
+    pairs = [(v, w) for v, w in values_weights if v == v]
+    return sum(v * w for v, w in pairs) / sum(w for _, w in pairs) if pairs else float("nan")
 
 
 def _latent_chunks(model, episodes, device, fresh: bool) -> LatentChunks:
@@ -213,10 +220,13 @@ def evaluate_fidelity(cfg, model, kinematics, cameras, held_eps, work: Path) -> 
               "beats_copy_baseline_ssim": bool(fidelity) and all(v["model_ssim"] > v["copy_ssim"] for v in fidelity.values())}
     (work / "fidelity.json").write_text(json.dumps(report, indent=2))
     plain = lambda v, k: f"{v[k]:.3f}" if k in v else "-"  # noqa: E731
-    md = ["| horizon (steps) | PSNR model | PSNR copy-last | SSIM model | SSIM copy-last | PSNR / SSIM plain decoding | n |",
-          "|---|---|---|---|---|---|---|"]
+    md = ["| horizon (steps) | PSNR model | PSNR copy-last | SSIM model | SSIM copy-last | PSNR / SSIM plain decoding | "
+          "SSIM static: model / copy | SSIM moving: model / copy | moving share | n |",
+          "|---|---|---|---|---|---|---|---|---|---|"]
     md += [f"| {h} | {v['model_psnr']:.2f} | {v['copy_psnr']:.2f} | {v['model_ssim']:.3f} | {v['copy_ssim']:.3f} | "
-           f"{plain(v, 'plain_psnr')} / {plain(v, 'plain_ssim')} | {v['n']} |" for h, v in sorted(fidelity.items())]
+           f"{plain(v, 'plain_psnr')} / {plain(v, 'plain_ssim')} | {v['model_ssim_static']:.3f} / "
+           f"{v['copy_ssim_static']:.3f} | {v['model_ssim_moving']:.3f} / {v['copy_ssim_moving']:.3f} | "
+           f"{v['moving_fraction']:.2f} | {v['n']} |" for h, v in sorted(fidelity.items())]
     md += ["", "| kinematics | pos median (mm) | pos p90 (mm) | rot median (deg) | gripper MAE |", "|---|---|---|---|---|"]
     md += [f"| {v['horizon']} step(s) | {v['pos_mm_median']:.2f} | {v['pos_mm_p90']:.2f} | {v['rot_deg_median']:.2f} | "
            f"{v['grip_mae']:.3f} |" for v in kin.values()]

@@ -148,3 +148,19 @@ def test_zero_temperature_one_step_sampling_is_the_flow_mean():
     assert not torch.allclose(a, noisy)
     with pytest.raises(ValueError, match="noise_scale"):
         WorldSimulator(**{**TINY, "noise_scale": 1.5})
+
+
+def test_static_snap_returns_small_changes_to_the_last_real_latent():
+    from worldenv_core.envs.imagined import snap_static
+
+    anchor = torch.zeros(1, 4, 8, 8)
+    z = torch.full((1, 2, 4, 8, 8), 0.05)  # drift everywhere ...
+    z[0, :, :, 0, 0] = 1.0  # ... and a real change in one corner
+    out = snap_static(z, anchor, threshold=0.15)
+    torch.testing.assert_close(out[0, :, :, 0, 0], z[0, :, :, 0, 0])  # the change stands
+    torch.testing.assert_close(out[0, :, :, 0, 1], z[0, :, :, 0, 1])  # and so does its neighbour (dilation)
+    assert (out[0, :, :, 4:, 4:] == 0).all()  # far from it, drift below the threshold is gone
+    z[0, :, :, 4, 4] = 0.225  # halfway up the ramp (1.5x the threshold): half the change is kept
+    torch.testing.assert_close(snap_static(z, anchor, 0.15)[0, :, :, 4, 4], torch.full((2, 4), 0.1125))
+    with pytest.raises(ValueError, match="static_snap"):
+        WorldSimulator(**{**TINY, "static_snap": -0.1})

@@ -12,6 +12,14 @@ reconstruction) wherever the decoded content has not changed from that frame's r
 where it has (the arm, a moved object) the model's own pixels stand. The gate is soft:
 weight 1 - min(1, change / detail_gate), change = the mean absolute change over colour
 channels, max-pooled over a small window so edges of moving parts are not touched.
+
+Static snap (the model's `static_snap` > 0): open loop, every chunk starts from the previous
+imagined latent, so small errors where nothing moves compound over chunks and the background
+slowly drifts and blurs (measured: the static region's SSIM falls from 0.98 to 0.86 over 64
+steps while the moving region beats copy-last throughout). The camera is fixed, so a latent
+position whose predicted change from the last real frame is small is snapped back to that
+frame: weight on the change = clamp(change / static_snap - 1, 0, 1), dilated over the
+neighbouring positions so the edges of moving parts keep their change.
 """
 
 from __future__ import annotations
@@ -46,6 +54,7 @@ class ImaginedSimulator:
         if self.detail_gate < 0:
             raise ValueError(f"detail_gate must be >= 0 (0 = off), got {self.detail_gate}")
         self.anchor: tuple[torch.Tensor, torch.Tensor] | None = None  # (reconstruction, detail) of the last real frame
+        self.anchor_latent: torch.Tensor | None = None  # (B, C, h, w) the last real frame's latent
         self.device = torch.device(device)
         self.latents: torch.Tensor | None = None  # (B, T, C, h, w), all frames so far
         self.proprio: torch.Tensor | None = None
@@ -80,6 +89,7 @@ class ImaginedSimulator:
             raise ValueError(f"a rollout camera does not render {self.model.image_size} px")
         self.rollout_cameras = list(cameras) if cameras is not None else None
         self.latents = self.model.encode(frames.to(self.device))
+        self.anchor_latent = self.latents[:, -1]
         if self.detail_gate > 0:
             recon = self.model.decode(self.latents[:, -1])
             self.anchor = (recon, frames[:, -1].to(self.device).float() / 255 - recon)
@@ -106,6 +116,8 @@ class ImaginedSimulator:
         maps = (draw_action_maps(states.float(), self.camera, size=self.model.map_size) if self.rollout_cameras is None
                 else draw_action_maps_per_rollout(states, self.rollout_cameras, self.model.map_size))
         z = self.model.predict_latents(self.memory(), maps, actions.float(), steps=self.steps, generator=generator)
+        if self.model.static_snap > 0:
+            z = snap_static(z, self.anchor_latent, self.model.static_snap)
         self.latents = torch.cat([self.latents, z], dim=1)
         self.proprio = states[:, -1]
         kept = {"all": z, "last": z[:, -1:], "none": None}[decode]
@@ -125,6 +137,16 @@ class ImaginedSimulator:
         return (x + keep * detail).clamp(0, 1)
 
 
+def snap_static(z: torch.Tensor, anchor: torch.Tensor, threshold: float) -> torch.Tensor:
+    """z (B, K, C, h, w) predicted latents, anchor (B, C, h, w) the last real one: changes below
+    `threshold` (mean |change| over channels) go back to the anchor, changes above 2x stay, a
+    linear ramp between; the weight is max-pooled 3x3 so neighbours of a change keep theirs."""
+    change = z - anchor[:, None]
+    size = change.abs().mean(dim=2, keepdim=True).flatten(0, 1)
+    keep = torch.nn.functional.max_pool2d((size / threshold - 1).clamp(0, 1), 3, stride=1, padding=1)
+    return anchor[:, None] + change * keep.view(*z.shape[:2], 1, *z.shape[3:])
+
+
 @torch.no_grad()
 def open_loop_fidelity(sim: ImaginedSimulator, episodes, horizons=(8, 16, 32, 64), starts_per_episode: int = 2,
                        camera: str = "agentview", generator: torch.Generator | None = None) -> dict:
@@ -134,12 +156,18 @@ def open_loop_fidelity(sim: ImaginedSimulator, episodes, horizons=(8, 16, 32, 64
     frames so far and then only the recorded actions, open loop, for max(horizons) steps. Returns,
     per horizon h, PSNR and SSIM of the frame h steps ahead, for the model and for the
     copy-the-last-real-frame baseline, plus `videos`: (real, imagined) frame stacks of the first
-    start of every episode for side-by-side viewing."""
-    from worldenv_core.metrics import psnr, ssim
+    start of every episode for side-by-side viewing.
+
+    SSIM is also split by region, to show where a model wins or loses: `moving` is where the real
+    frame h steps ahead differs from the start frame (mean |difference| over colour > 0.04,
+    dilated 7x7: the arm and what it moved), `static` the rest; `moving_fraction` its share."""
+    from worldenv_core.metrics import psnr, ssim_map
 
     k, longest = sim.model.chunk, max(horizons)
     n_chunks = -(-longest // k)
-    rows = {h: {"model_psnr": [], "model_ssim": [], "copy_psnr": [], "copy_ssim": []} for h in horizons}
+    keys = ("model_psnr", "model_ssim", "copy_psnr", "copy_ssim", "model_ssim_static", "copy_ssim_static",
+            "model_ssim_moving", "copy_ssim_moving", "moving_fraction")
+    rows = {h: {key: [] for key in keys} for h in horizons}
     videos = []
     for ep in episodes:
         imgs = torch.from_numpy(ep.images[camera]).permute(0, 3, 1, 2)  # (T+1, 3, H, W)
@@ -158,14 +186,30 @@ def open_loop_fidelity(sim: ImaginedSimulator, episodes, horizons=(8, 16, 32, 64
             fake = frames[:, h - 1].float() / 255
             copy = torch.stack([imgs[s] for s in starts]).float() / 255
             rows[h]["model_psnr"] += psnr(fake, real).tolist()
-            rows[h]["model_ssim"] += ssim(fake, real).tolist()
             rows[h]["copy_psnr"] += psnr(copy, real).tolist()
-            rows[h]["copy_ssim"] += ssim(copy, real).tolist()
+            _ssim_by_region(rows[h], ssim_map(fake, real), ssim_map(copy, real), real, copy)
         s0 = starts[0]
         videos.append((imgs[s0 + 1:s0 + 1 + frames.shape[1]], frames[0, : ep.length - s0]))
     summary = {h: {key: (sum(v) / len(v) if v else float("nan")) for key, v in r.items()} | {"n": len(r["model_psnr"])}
                for h, r in rows.items()}
     return {"horizons": summary, "videos": videos}
+
+
+def _ssim_by_region(row: dict, model_map: torch.Tensor, copy_map: torch.Tensor, real: torch.Tensor,
+                    start: torch.Tensor, threshold: float = 0.04) -> None:
+    """Append whole-image and per-region SSIM of a batch (maps (N, H', W'), frames (N, 3, H, W))."""
+    change = (real - start).abs().mean(dim=1, keepdim=True)
+    moving = torch.nn.functional.max_pool2d(change, 7, stride=1, padding=3)[:, 0] > threshold
+    crop = (moving.shape[-1] - model_map.shape[-1]) // 2  # the SSIM map is `valid`: crop to it
+    moving = moving[:, crop:moving.shape[-2] - crop, crop:moving.shape[-1] - crop]
+    row["model_ssim"] += model_map.flatten(1).mean(1).tolist()
+    row["copy_ssim"] += copy_map.flatten(1).mean(1).tolist()
+    for mm, cm, mv in zip(model_map, copy_map, moving):
+        row["moving_fraction"].append(mv.float().mean().item())
+        for name, region in (("static", ~mv), ("moving", mv)):
+            if region.any():
+                row[f"model_ssim_{name}"].append(mm[region].mean().item())
+                row[f"copy_ssim_{name}"].append(cm[region].mean().item())
 
 
 @torch.no_grad()

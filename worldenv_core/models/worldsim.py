@@ -147,12 +147,16 @@ class WorldSimulator(nn.Module):
             samples of the learned distribution; 0 starts every rollout from the same point, and
             with one Euler step gives the flow's conditional mean (v(x0, 0) = E[x1] - x0), the
             prediction with the least squared error: sharper for metrics, no per-rollout variety.
+        static_snap: open-loop drift control (worldenv_core/envs/imagined.py): latent positions whose
+            predicted change from the last real frame is below this (mean |change| over channels,
+            in latent std units) are snapped back to that frame; 0 = off.
     """
 
     def __init__(self, image_size: int, chunk: int = 8, memory_offsets=(0, 4, 8, 16), latent_size: int = 16,
                  latent_channels: int = 4, ae_widths=(32, 64), ae_patch: int = 4, width: int = 48,
                  map_channels: int = 16, map_size: int | None = None, use_raw_actions: bool = False,
-                 sampling_steps: int = 4, action_dim: int = 7, detail_gate: float = 0.0, noise_scale: float = 1.0):
+                 sampling_steps: int = 4, action_dim: int = 7, detail_gate: float = 0.0, noise_scale: float = 1.0,
+                 static_snap: float = 0.0):
         super().__init__()
         self.map_size = int(map_size or image_size // 2)  # action maps are drawn at this resolution
         if self.map_size % latent_size:
@@ -166,6 +170,9 @@ class WorldSimulator(nn.Module):
         if not 0.0 <= noise_scale <= 1.0:
             raise ValueError(f"noise_scale must be in [0, 1], got {noise_scale}")
         self.noise_scale = float(noise_scale)
+        if static_snap < 0:
+            raise ValueError(f"static_snap must be >= 0 (0 = off), got {static_snap}")
+        self.static_snap = float(static_snap)
         self.memory_offsets = tuple(int(o) for o in memory_offsets)
         if self.memory_offsets[0] != 0 or any(o < 0 for o in self.memory_offsets):
             raise ValueError(f"memory_offsets must start with 0 (the current frame), got {memory_offsets}")
