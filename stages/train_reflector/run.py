@@ -29,7 +29,7 @@ from worldenv_core.models.reflector import check_eta, prefix_scores, score_prefi
 from worldenv_core.models.reflector_data import PrefixSampler
 from worldenv_core.models.text import InstructionEncoder
 from worldenv_core.rl.termination import StopOutcome, check_steps, first_stop, first_success, success_labels, termination_metrics
-from worldenv_core.stage import ConfigError, positive_int, require_task, resolved, start, work_dir
+from worldenv_core.stage import ConfigError, positive_int, require_task, resolve_checkpoint, resolved, start, work_dir
 from worldenv_core.training import Checkpoints, RunningMeans, pick_device, plot_history, random_shift
 
 log = logging.getLogger("worldenv.train_reflector")
@@ -66,7 +66,10 @@ def run(cfg: DictConfig) -> dict:
     tags = {"task": task.name, "scale": cfg.scale.name, "data": "expert" if cfg.expert_only else "expert+policy"}
     with StageRun(manifest, "train_reflector", tags, config) as stage:
         _, held, episodes, held_eps = load_split(manifest, stage, cfg)
-        work = work_dir(cfg.experiment_dir, "train_reflector", config, stage.inputs)
+        # named by what defines the training and its inputs, not by how it is evaluated or shown:
+        # changing imagined.* or plots re-evaluates the finished run instead of training anew
+        work = work_dir(cfg.experiment_dir, "train_reflector",
+                        {k: v for k, v in config.items() if k not in ("imagined", "plots")}, stage.inputs)
         try:
             sampler = PrefixSampler(episodes, cfg.camera, cfg.frame_stride, cfg.reflector.max_frames,
                                     cfg.train.hard_negative_fraction, cfg.train.hard_window)
@@ -177,16 +180,19 @@ def _augment(model, frames: torch.Tensor, mask: torch.Tensor, shift: int, genera
 
 def imagine_held_out(cfg, manifest, stage: StageRun, held: list[Path], held_eps):
     """World-simulator replays of the held-out episodes the world model did not train on, or None
-    when the experiment has no world simulator yet."""
+    when the experiment has no world simulator yet. `imagined.worldsim_from`: a train_worldsim
+    record id or checkpoint folder; null = the latest of this task and scale."""
     from worldenv_core.envs.imagined import ImaginedSimulator, replay_from_start
     from worldenv_core.models.checkpoint import read_config
 
-    try:
-        record = manifest.latest("train_worldsim", task=cfg.task.name, scale=cfg.scale.name)
-    except ArtefactError:
-        log.warning("no train_worldsim record in %s: imagined evaluation skipped", cfg.experiment_dir)
-        return None
-    ckpt = stage.use(record, kind="checkpoint")[0].parent
+    ref = cfg.imagined.worldsim_from
+    if ref is None:
+        try:
+            manifest.latest("train_worldsim", task=cfg.task.name, scale=cfg.scale.name)
+        except ArtefactError:
+            log.warning("no train_worldsim record in %s: imagined evaluation skipped", cfg.experiment_dir)
+            return None
+    ckpt = resolve_checkpoint(stage, ref, "train_worldsim", cfg.task.name, cfg.scale.name)
     unseen = read_config(ckpt)["meta"].get("held_out")
     eps = [ep for p, ep in zip(held, held_eps) if unseen is None or episode_key(p) in set(unseen)]
     if not eps:

@@ -7,7 +7,7 @@ import pytest
 from stages.evaluate.run import run as evaluate
 from stages.train_reflector.run import run as train_reflector
 from worldenv_core.data.mcap_io import read_episode
-from worldenv_core.manifest import Manifest
+from worldenv_core.manifest import ArtefactError, Manifest
 from worldenv_core.models.reflector import load_reflector
 from worldenv_core.rl.termination import first_success
 from worldenv_core.stage import ConfigError, compose_config
@@ -55,6 +55,11 @@ def test_train_reflector_records_checkpoint_and_report(trained):
 def test_train_reflector_resumes_and_rejects_bad_settings(trained):
     exp, _ = trained
     assert train_reflector(cfg("train_reflector", exp, *SMALL, "expert_only=true"))["train_wall_s"] < 5
+    # evaluation-only settings do not name the run: it is re-evaluated, not trained again
+    assert train_reflector(cfg("train_reflector", exp, *SMALL, "expert_only=true", "plots=0"))["train_wall_s"] < 5
+    with pytest.raises(ArtefactError, match="train_worldsim-000000000000"):
+        train_reflector(cfg("train_reflector", exp, *SMALL, "expert_only=true",
+                            "imagined.worldsim_from=train_worldsim-000000000000"))
     with pytest.raises(ConfigError, match=r"eta .* must be in \[0, 1\], got 1.5"):
         train_reflector(cfg("train_reflector", exp, *SMALL, "eta=1.5"))
     with pytest.raises(ConfigError, match="train.mine.every must .* divide train.checkpoint_every"):
