@@ -295,7 +295,8 @@ def _plot_curves(curves: dict, held_eps, imagined_eps, cfg, path: Path) -> None:
         ax.set_ylim(-0.05, 1.05)
         ax.set_title(f"task {ep.meta.task_id} {ep.meta.source} {'ok' if ts is not None else 'fail'}", fontsize=8)
         ax.set_xlabel("step")
-    axes[0][0].legend(fontsize=7)
+    if n:
+        axes[0][0].legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path.with_suffix(".tmp.png"))
     plt.close(fig)
