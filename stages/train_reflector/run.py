@@ -100,7 +100,7 @@ def run(cfg: DictConfig) -> dict:
         videos = {"real": [torch.from_numpy(ep.images[cfg.camera]).permute(0, 3, 1, 2) for ep in held_eps]}
         imagined_eps = held_eps
         if cfg.imagined.enabled:
-            imagined = imagine_held_out(cfg, manifest, stage, held, held_eps)
+            imagined = imagine_held_out(cfg, stage, held, held_eps)
             if imagined is not None:
                 imagined_eps, videos["imagined"] = imagined
         report = {"eta": float(cfg.eta), "held_out_episodes": len(held_eps)}
@@ -178,7 +178,7 @@ def _augment(model, frames: torch.Tensor, mask: torch.Tensor, shift: int, genera
     return out, mask
 
 
-def imagine_held_out(cfg, manifest, stage: StageRun, held: list[Path], held_eps):
+def imagine_held_out(cfg, stage: StageRun, held: list[Path], held_eps):
     """World-simulator replays of the held-out episodes the world model did not train on, or None
     when the experiment has no world simulator yet. `imagined.worldsim_from`: a train_worldsim
     record id or checkpoint folder; null = the latest of this task and scale."""
@@ -186,13 +186,13 @@ def imagine_held_out(cfg, manifest, stage: StageRun, held: list[Path], held_eps)
     from worldenv_core.models.checkpoint import read_config
 
     ref = cfg.imagined.worldsim_from
-    if ref is None:
-        try:
-            manifest.latest("train_worldsim", task=cfg.task.name, scale=cfg.scale.name)
-        except ArtefactError:
-            log.warning("no train_worldsim record in %s: imagined evaluation skipped", cfg.experiment_dir)
-            return None
-    ckpt = resolve_checkpoint(stage, ref, "train_worldsim", cfg.task.name, cfg.scale.name)
+    try:
+        ckpt = resolve_checkpoint(stage, ref, "train_worldsim", cfg.task.name, cfg.scale.name)
+    except ArtefactError:
+        if ref is not None:  # a named world model that is not there is an error, not a skip
+            raise
+        log.warning("no train_worldsim record in %s: imagined evaluation skipped", cfg.experiment_dir)
+        return None
     unseen = read_config(ckpt)["meta"].get("held_out")
     eps = [ep for p, ep in zip(held, held_eps) if unseen is None or episode_key(p) in set(unseen)]
     if not eps:
