@@ -41,6 +41,7 @@ def validate(cfg: DictConfig) -> None:
     for key in ("train.steps", "train.batch_size", "train.log_every", "train.checkpoint_every", "holdout_every",
                 "frame_stride", "reflector.max_frames"):
         positive_int(cfg, key)
+    positive_int(cfg, "train.label_delay", allow_zero=True)
     try:
         check_eta(cfg.eta)
     except ValueError as e:
@@ -72,13 +73,15 @@ def run(cfg: DictConfig) -> dict:
                         {k: v for k, v in config.items() if k not in ("imagined", "plots")}, stage.inputs)
         try:
             sampler = PrefixSampler(episodes, cfg.camera, cfg.frame_stride, cfg.reflector.max_frames,
-                                    cfg.train.hard_negative_fraction, cfg.train.hard_window)
+                                    cfg.train.hard_negative_fraction, cfg.train.hard_window,
+                                    cfg.train.label_delay)
         except ValueError as e:
             raise ConfigError(f"{e}; collect more episodes (policy rollouts give failures)") from None
         model_cfg = OmegaConf.to_container(cfg.reflector, resolve=True)
         model = instantiate(model_cfg, _convert_="all").to(device)
         meta = {"kind": "reflector", "task": task.name, "suite": task.suite, "camera": cfg.camera,
                 "image_size": task.image_size, "frame_stride": cfg.frame_stride, "eta": float(cfg.eta),
+                "label_delay": cfg.train.label_delay,
                 "episodes": len(episodes), "held_out": [episode_key(p) for p in held], **sampler.counts()}
         encoder = InstructionEncoder()
         t0 = time.perf_counter()

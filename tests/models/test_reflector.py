@@ -9,7 +9,7 @@ from worldenv_core.data.episode import Episode, EpisodeMeta
 from worldenv_core.models.checkpoint import CheckpointError, save_model
 from worldenv_core.models.reflector import (IncrementalScorer, ReflectorStop, check_eta, load_reflector,
                                             score_prefixes, subsample_indices)
-from worldenv_core.models.reflector_data import PrefixSampler, prefix_frames
+from worldenv_core.models.reflector_data import PrefixSampler, prefix_frames, settled_labels
 
 
 def small_config(max_frames=8, input_size=None):
@@ -167,3 +167,20 @@ def test_mining_makes_high_scoring_negatives_hard_and_never_positives():
     assert drawn.sum() == 32  # still half positives
     sampler.set_mined([])
     assert {tuple(x) for x in sampler.hard} == window
+
+
+def test_settled_labels_turn_on_delay_steps_after_the_first_success():
+    flags = np.array([0, 0, 1, 0, 1, 1, 1], dtype=bool)  # the oracle flickers once: done stays done
+    assert settled_labels(flags, 0).tolist() == [0, 0, 1, 1, 1, 1, 1]
+    assert settled_labels(flags, 2).tolist() == [0, 0, 0, 0, 1, 1, 1]
+    assert settled_labels(flags, 50).tolist() == [0, 0, 0, 0, 0, 0, 1]  # a success keeps its last frame
+    assert not settled_labels(np.zeros(5, dtype=bool), 3).any()
+
+
+def test_label_delay_moves_the_positives_and_the_hard_window_with_them():
+    eps = episodes(3, 6)
+    plain = PrefixSampler(eps, "agentview", stride=4, max_frames=8, hard_window=4)
+    late = PrefixSampler(eps, "agentview", stride=4, max_frames=8, hard_window=4, label_delay=3)
+    assert len(late.pos) == len(plain.pos) - 3 * sum(ep.success.any() for ep in eps)
+    onset = {i: int(np.argmax(y)) for i, y in enumerate(late.labels) if y.any()}
+    assert {tuple(x) for x in late.hard} == {(i, t) for i, ts in onset.items() for t in range(ts - 4, ts)}

@@ -64,6 +64,8 @@ def test_train_reflector_resumes_and_rejects_bad_settings(trained):
         train_reflector(cfg("train_reflector", exp, *SMALL, "eta=1.5"))
     with pytest.raises(ConfigError, match="train.mine.every must .* divide train.checkpoint_every"):
         train_reflector(cfg("train_reflector", exp, *SMALL, "train.mine.every=2"))
+    with pytest.raises(ConfigError, match=r"train.label_delay must be an integer >= 0, got -1"):
+        train_reflector(cfg("train_reflector", exp, *SMALL, "train.label_delay=-1"))
     with pytest.raises(ConfigError, match="source=policy.*expert_only=true"):
         train_reflector(cfg("train_reflector", exp, *SMALL))
 

@@ -2,7 +2,11 @@
 
 A prefix ending at frame t shows what a chunked rollout has at that point: the frames at
 t, t - K, t - 2K, ... and the first frame, uniformly sub-sampled to the model's `max_frames`.
-Its label is y_t (1 from the oracle's first success onward). Positives are rare (a demo that
+Its label is y_t (1 from the oracle's first success onward), or with `label_delay` d > 0 the
+settled label: 1 from d steps after the first success. The oracle reports a pick-and-place done
+the moment the object touches its target, still in the gripper, and that frame looks like a
+failed rollout holding the object just above the target; a reflector trained on settled labels
+waits for the release, stops a few steps later and stops far less often on such near misses. Positives are rare (a demo that
 stops at success has one positive frame), so each batch draws half positives and half
 negatives; `hard_negative_fraction` of the negatives come from the last `hard_window` frames
 before a success, where a premature stop would cost an episode, plus (when mining is on)
@@ -19,6 +23,17 @@ from worldenv_core.models.reflector import subsample_indices
 from worldenv_core.rl.termination import success_labels
 
 
+def settled_labels(success: np.ndarray, delay: int = 0) -> np.ndarray:
+    """Per-frame oracle flags -> training labels: 1 from `delay` steps after the first success
+    onward (from the last frame at the latest, so a successful episode keeps a positive)."""
+    y = success_labels(success)
+    if delay > 0 and y.any():
+        onset = min(int(np.argmax(y)) + delay, len(y) - 1)
+        y = y.copy()
+        y[:onset] = False
+    return y
+
+
 def prefix_frames(t: int, stride: int, max_frames: int) -> np.ndarray:
     """Frame indices a chunked rollout has at frame t (oldest first), sub-sampled."""
     idx = np.arange(t, -1, -stride)[::-1]
@@ -31,11 +46,11 @@ class PrefixSampler:
     """Seeded balanced batches of (frames, mask, label, instruction) from in-memory episodes."""
 
     def __init__(self, episodes, camera: str, stride: int, max_frames: int, hard_negative_fraction: float = 0.25,
-                 hard_window: int = 16):
+                 hard_window: int = 16, label_delay: int = 0):
         self.frames = [torch.from_numpy(ep.images[camera]).permute(0, 3, 1, 2) for ep in episodes]  # (T+1, 3, H, W)
         self.instructions = [ep.meta.instruction for ep in episodes]
         self.stride, self.max_frames = int(stride), int(max_frames)
-        self.labels = [success_labels(ep.success) for ep in episodes]
+        self.labels = [settled_labels(ep.success, label_delay) for ep in episodes]
         pos, neg, hard = [], [], []
         for i, y in enumerate(self.labels):
             for t in range(len(y)):
