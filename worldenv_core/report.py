@@ -166,17 +166,19 @@ def write_report(experiment_dir: str | Path, task: str) -> Path:
     reflectors = [(r, acc) for r, acc in reversed(reflectors) if acc]
     if reflectors:
         lines += ["", "## Reflector (held-out episodes, newest first)", "",
-                  "| record | data | hard-negative mining | eta | held out | video | step accuracy | step F1 | step AUROC | "
+                  "| record | data | training | eta | held out | video | step accuracy | step F1 | step AUROC | "
                   "termination F1 |", "|---|---|---|---|---|---|---|---|---|---|"]
         for r, acc in reflectors:
-            mine = (r.config.get("train") or {}).get("mine") or {}
-            mining = f"every {mine['every']}, > {mine['threshold']}" if mine.get("every") else "off"
+            train = r.config.get("train") or {}
+            mine = train.get("mine") or {}
+            training = ", ".join([f"{train.get('steps')} steps", f"label delay {train.get('label_delay', 0)}",
+                                  f"mining every {mine['every']} > {mine['threshold']}" if mine.get("every") else "no mining"])
             ckpt = r.files("checkpoint")
             run = f"`{r.id}` ({_short(str(Path(ckpt[0].path).parent))})" if ckpt else f"`{r.id}`"  # the name evaluations give above
             for kind in ("real", "imagined"):
                 if kind in acc:
                     p, t = acc[kind]["per_step"], acc[kind]["termination"]["all"]
-                    lines.append(f"| {run} | {r.tags.get('data')} | {mining} | {acc['eta']} | {acc['held_out_episodes']} "
+                    lines.append(f"| {run} | {r.tags.get('data')} | {training} | {acc['eta']} | {acc['held_out_episodes']} "
                                  f"| {kind} | {p['accuracy']:.3f} | {p['f1']:.3f} | {p['auroc']:.3f} | {t['f1']:.3f} |")
 
     lines += ["", "## Wall time per stage (newest run of each)", "", "| stage | tags | wall s |", "|---|---|---|"]

@@ -49,7 +49,8 @@ def test_train_reflector_records_checkpoint_and_report(trained):
     assert real["termination"]["all"]["episodes"] == 1 == metrics["held_out"]
     assert "imagined" not in report  # this experiment has no world simulator
     model, meta = load_reflector(files["model.safetensors"].parent, expect={"image_size": 64})
-    assert meta["held_out"] and meta["positive_frames"] == 9  # the training demo's 9 frames after success
+    # the training demo's 9 frames from success on, less the first 8: settled labels (train.label_delay=8)
+    assert meta["held_out"] and meta["label_delay"] == 8 and meta["positive_frames"] == 9 - 8
 
 
 def test_train_reflector_resumes_and_rejects_bad_settings(trained):
