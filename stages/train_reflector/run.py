@@ -21,14 +21,14 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from worldenv_core.data.selection import episode_key, load_split
+from worldenv_core.data.selection import episode_key, holdout_split, load_split
 from worldenv_core.manifest import ArtefactError, StageRun
 from worldenv_core.metrics import binary_metrics
 from worldenv_core.models.checkpoint import save_model
 from worldenv_core.models.reflector import check_eta, prefix_scores, score_prefixes
 from worldenv_core.models.reflector_data import PrefixSampler
 from worldenv_core.models.text import InstructionEncoder
-from worldenv_core.rl.termination import StopOutcome, check_steps, first_stop, first_success, success_labels, termination_metrics
+from worldenv_core.rl.termination import StopOutcome, best_eta, check_steps, first_stop, first_success, success_labels, termination_metrics
 from worldenv_core.stage import ConfigError, positive_int, require_task, resolve_checkpoint, resolved, start, work_dir
 from worldenv_core.training import Checkpoints, RunningMeans, pick_device, plot_history, random_shift
 
@@ -42,6 +42,7 @@ def validate(cfg: DictConfig) -> None:
                 "frame_stride", "reflector.max_frames"):
         positive_int(cfg, key)
     positive_int(cfg, "train.label_delay", allow_zero=True)
+    positive_int(cfg, "validation_every", allow_zero=True)
     try:
         check_eta(cfg.eta)
     except ValueError as e:
@@ -66,7 +67,8 @@ def run(cfg: DictConfig) -> dict:
     config = resolved(cfg)
     tags = {"task": task.name, "scale": cfg.scale.name, "data": "expert" if cfg.expert_only else "expert+policy"}
     with StageRun(manifest, "train_reflector", tags, config) as stage:
-        _, held, episodes, held_eps = load_split(manifest, stage, cfg)
+        train_paths, held, episodes, held_eps = load_split(manifest, stage, cfg)
+        episodes, val_eps = split_validation(train_paths, episodes, cfg.validation_every)
         # named by what defines the training and its inputs, not by how it is evaluated or shown:
         # changing imagined.* or plots re-evaluates the finished run instead of training anew
         work = work_dir(cfg.experiment_dir, "train_reflector",
@@ -100,7 +102,7 @@ def run(cfg: DictConfig) -> dict:
             stage.add_output(f, kind="checkpoint")
 
         t1 = time.perf_counter()
-        videos = {"real": [torch.from_numpy(ep.images[cfg.camera]).permute(0, 3, 1, 2) for ep in held_eps]}
+        videos = {"real": [_video(ep, cfg.camera) for ep in held_eps]}
         imagined_eps = held_eps
         if cfg.imagined.enabled:
             imagined = imagine_held_out(cfg, stage, held, held_eps)
@@ -111,6 +113,13 @@ def run(cfg: DictConfig) -> dict:
         for kind, vids in videos.items():
             eps = held_eps if kind == "real" else imagined_eps
             report[kind], curves[kind] = evaluate_videos(model, encoder, eps, vids, cfg.frame_stride, cfg.eta)
+        if val_eps:  # eta chosen on validation episodes, then scored once on the held-out ones
+            val, _ = evaluate_videos(model, encoder, val_eps, [_video(ep, cfg.camera) for ep in val_eps],
+                                     cfg.frame_stride, cfg.eta)
+            chosen = best_eta({e: v["termination_f1"] for e, v in val["eta_sweep"].items()}, cfg.eta)
+            at_chosen, _ = evaluate_videos(model, encoder, held_eps, videos["real"], cfg.frame_stride, chosen)
+            report["validation"] = {"episodes": len(val_eps), "eta_sweep": val["eta_sweep"], "chosen_eta": chosen,
+                                    "real_termination_at_chosen_eta": at_chosen["termination"]["all"]}
         report["eval_wall_s"] = round(time.perf_counter() - t1, 1)
         write_report(report, curves, held_eps, imagined_eps, cfg, work)
         for name in ("reflector_eval.json", "reflector_eval.md", "reflector_curves.png"):
@@ -119,6 +128,22 @@ def run(cfg: DictConfig) -> dict:
                               "train_wall_s": round(train_s, 1), "device": str(device), **_headline(report)})
         log.info("reflector saved to %s; metrics %s", final, json.dumps(stage.metrics))
     return stage.metrics
+
+
+def split_validation(paths: list[Path], episodes: list, every: int) -> tuple[list, list]:
+    """Every `every`-th training episode (0: none) is kept out of training to choose eta on, so
+    the held-out test episodes are never used to choose anything. -> (training, validation)."""
+    if not every:
+        return episodes, []
+    fit, val = holdout_split(paths, every)
+    if not fit:
+        raise ConfigError(f"validation_every={every} leaves no training episodes (of {len(paths)})")
+    val = set(val)
+    return [e for p, e in zip(paths, episodes) if p not in val], [e for p, e in zip(paths, episodes) if p in val]
+
+
+def _video(ep, camera: str) -> torch.Tensor:
+    return torch.from_numpy(ep.images[camera]).permute(0, 3, 1, 2)
 
 
 def train(cfg, model, model_cfg: dict, meta: dict, sampler: PrefixSampler, encoder, work: Path, device) -> list[dict]:
@@ -244,6 +269,9 @@ def evaluate_videos(model, encoder, episodes, videos, stride: int, eta: float) -
 
 def _headline(report: dict) -> dict:
     out = {}
+    if "validation" in report:
+        v = report["validation"]
+        out.update(chosen_eta=v["chosen_eta"], real_termination_f1_at_chosen_eta=v["real_termination_at_chosen_eta"]["f1"])
     for kind in ("real", "imagined"):
         if kind in report:
             r = report[kind]
@@ -271,6 +299,11 @@ def write_report(report: dict, curves: dict, held_eps, imagined_eps, cfg, work: 
     md += ["", "Termination F1 by eta: | eta | " + " | ".join(kinds) + " |", "|---|" + "---|" * len(kinds)]
     md += [f"| {e} | " + " | ".join(f"{report[k]['eta_sweep'][str(e)]['termination_f1']:.3f}" for k in kinds) + " |"
            for e in ETA_SWEEP]
+    if "validation" in report:
+        v, t = report["validation"], report["validation"]["real_termination_at_chosen_eta"]
+        md += ["", f"eta chosen on {v['episodes']} validation episodes (held out of training): {v['chosen_eta']}; "
+               f"held-out real termination at it: precision {t['precision']:.3f}, recall {t['recall']:.3f}, "
+               f"**F1 {t['f1']:.3f}** ({t['false_stops']} false stops, {t['missed_successes']} missed successes)"]
     (work / "reflector_eval.md").write_text("\n".join(md) + "\n")
     print("\n".join(md))
     _plot_curves(curves, held_eps, imagined_eps, cfg, work / "reflector_curves.png")

@@ -4,7 +4,7 @@ import math
 import numpy as np
 
 from worldenv_core.metrics import auroc, binary_metrics
-from worldenv_core.rl.termination import (StopOutcome, check_steps, episode_outcomes, first_stop, first_success,
+from worldenv_core.rl.termination import (StopOutcome, best_eta, check_steps, episode_outcomes, first_stop, first_success,
                                           success_labels, termination_metrics)
 
 
@@ -69,3 +69,9 @@ def test_episode_outcomes_read_every_mode_off_one_rollout():
     early = episode_outcomes(flags, checks, scores, eta=0.25)
     assert early["reflector"] == {"success": False, "steps": 16, "stop_step": 16}
     assert episode_outcomes(np.zeros(5, bool), [], [], 0.5)["oracle"] == {"success": False, "steps": 4, "stop_step": None}
+
+
+def test_best_eta_takes_the_highest_f1_and_breaks_ties_towards_the_configured_eta():
+    assert best_eta({"0.3": 0.8, "0.5": 0.85, "0.8": 0.9, "0.9": 0.9}, prior=0.5) == 0.8
+    assert best_eta({"0.3": 0.8, "0.5": 0.8, "0.7": 0.8}, prior=0.5) == 0.5  # a flat sweep keeps eta
+    assert best_eta({"0.1": float("nan"), "0.2": 0.0}, prior=0.1) == 0.2  # NaN (nothing to stop) is worst

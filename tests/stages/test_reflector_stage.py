@@ -6,6 +6,7 @@ import pytest
 
 from stages.evaluate.run import run as evaluate
 from stages.train_reflector.run import run as train_reflector
+from stages.train_reflector.run import split_validation
 from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.manifest import ArtefactError, Manifest
 from worldenv_core.models.reflector import load_reflector
@@ -65,6 +66,8 @@ def test_train_reflector_resumes_and_rejects_bad_settings(trained):
         train_reflector(cfg("train_reflector", exp, *SMALL, "eta=1.5"))
     with pytest.raises(ConfigError, match="train.mine.every must .* divide train.checkpoint_every"):
         train_reflector(cfg("train_reflector", exp, *SMALL, "train.mine.every=2"))
+    with pytest.raises(ConfigError, match=r"validation_every must be an integer >= 0, got -2"):
+        train_reflector(cfg("train_reflector", exp, *SMALL, "validation_every=-2"))
     with pytest.raises(ConfigError, match=r"train.label_delay must be an integer >= 0, got -1"):
         train_reflector(cfg("train_reflector", exp, *SMALL, "train.label_delay=-1"))
     with pytest.raises(ConfigError, match="source=policy.*expert_only=true"):
@@ -116,3 +119,12 @@ def test_evaluate_all_equals_three_separate_runs(with_policy):
         (b,) = json.loads((Path(together[mode]["report_dir"]) / "episodes.json").read_text())
         assert {k: a[k] for k in keys} == {k: b[k] for k in keys}, mode
     assert together["fixed"]["per_task"][0]["mean_steps"] == 280
+
+
+def test_validation_episodes_are_split_off_training_and_never_trained_on():
+    paths = [Path(f"c/task00/e{i}.mcap") for i in range(6)]
+    fit, val = split_validation(paths, [f"ep{i}" for i in range(6)], every=3)
+    assert fit == ["ep0", "ep1", "ep3", "ep4"] and val == ["ep2", "ep5"]
+    assert split_validation(paths, list(range(6)), every=0) == (list(range(6)), [])
+    with pytest.raises(ConfigError, match="validation_every=1 leaves no training episodes"):
+        split_validation(paths, list(range(6)), every=1)

@@ -76,6 +76,15 @@ def episode_outcomes(flags, check_steps_: list[int], scores, eta: float) -> dict
             "reflector": {"success": bool(flags[reflector_end]), "steps": reflector_end, "stop_step": t_stop}}
 
 
+def best_eta(f1_by_eta: dict, prior: float) -> float:
+    """The threshold with the highest termination F1 (NaN counts as worst); ties go to the one
+    closest to `prior` (the configured eta), so a flat sweep keeps it."""
+    def key(item):
+        eta, f1 = float(item[0]), float(item[1])
+        return (-np.inf if np.isnan(f1) else f1, -abs(eta - prior))
+    return float(max(f1_by_eta.items(), key=key)[0])
+
+
 def termination_metrics(outcomes: list[StopOutcome]) -> dict:
     kinds = [o.kind for o in outcomes]
     tp, fp, fn = kinds.count("correct"), kinds.count("false_stop"), kinds.count("missed")
