@@ -113,13 +113,8 @@ def run(cfg: DictConfig) -> dict:
         for kind, vids in videos.items():
             eps = held_eps if kind == "real" else imagined_eps
             report[kind], curves[kind] = evaluate_videos(model, encoder, eps, vids, cfg.frame_stride, cfg.eta)
-        if val_eps:  # eta chosen on validation episodes, then scored once on the held-out ones
-            val, _ = evaluate_videos(model, encoder, val_eps, [_video(ep, cfg.camera) for ep in val_eps],
-                                     cfg.frame_stride, cfg.eta)
-            chosen = best_eta({e: v["termination_f1"] for e, v in val["eta_sweep"].items()}, cfg.eta)
-            at_chosen, _ = evaluate_videos(model, encoder, held_eps, videos["real"], cfg.frame_stride, chosen)
-            report["validation"] = {"episodes": len(val_eps), "eta_sweep": val["eta_sweep"], "chosen_eta": chosen,
-                                    "real_termination_at_chosen_eta": at_chosen["termination"]["all"]}
+        if val_eps:
+            report["validation"] = eta_on_validation(model, encoder, val_eps, held_eps, videos["real"], cfg)
         report["eval_wall_s"] = round(time.perf_counter() - t1, 1)
         write_report(report, curves, held_eps, imagined_eps, cfg, work)
         for name in ("reflector_eval.json", "reflector_eval.md", "reflector_curves.png"):
@@ -140,6 +135,17 @@ def split_validation(paths: list[Path], episodes: list, every: int) -> tuple[lis
         raise ConfigError(f"validation_every={every} leaves no training episodes (of {len(paths)})")
     val = set(val)
     return [e for p, e in zip(paths, episodes) if p not in val], [e for p, e in zip(paths, episodes) if p in val]
+
+
+def eta_on_validation(model, encoder, val_eps, held_eps, held_videos, cfg) -> dict:
+    """The eta with the best termination F1 on the validation episodes, and the held-out real
+    episodes' termination scored once at it."""
+    val, _ = evaluate_videos(model, encoder, val_eps, [_video(ep, cfg.camera) for ep in val_eps], cfg.frame_stride,
+                             cfg.eta)
+    chosen = best_eta({e: v["termination_f1"] for e, v in val["eta_sweep"].items()}, cfg.eta)
+    at_chosen, _ = evaluate_videos(model, encoder, held_eps, held_videos, cfg.frame_stride, chosen)
+    return {"episodes": len(val_eps), "eta_sweep": val["eta_sweep"], "chosen_eta": chosen,
+            "real_termination_at_chosen_eta": at_chosen["termination"]["all"]}
 
 
 def _video(ep, camera: str) -> torch.Tensor:
