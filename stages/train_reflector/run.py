@@ -102,7 +102,7 @@ def run(cfg: DictConfig) -> dict:
             stage.add_output(f, kind="checkpoint")
 
         t1 = time.perf_counter()
-        videos = {"real": [_video(ep, cfg.camera) for ep in held_eps]}
+        videos = {"real": [ep.video(cfg.camera) for ep in held_eps]}
         imagined_eps = held_eps
         if cfg.imagined.enabled:
             imagined = imagine_held_out(cfg, stage, held, held_eps)
@@ -114,7 +114,7 @@ def run(cfg: DictConfig) -> dict:
             eps = held_eps if kind == "real" else imagined_eps
             report[kind], curves[kind] = evaluate_videos(model, encoder, eps, vids, cfg.frame_stride, cfg.eta)
         if val_eps:
-            report["validation"] = eta_on_validation(model, encoder, val_eps, held_eps, videos["real"], cfg)
+            report["validation"] = eta_on_validation(model, encoder, val_eps, held_eps, curves["real"], cfg)
         report["eval_wall_s"] = round(time.perf_counter() - t1, 1)
         write_report(report, curves, held_eps, imagined_eps, cfg, work)
         for name in ("reflector_eval.json", "reflector_eval.md", "reflector_curves.png"):
@@ -137,19 +137,16 @@ def split_validation(paths: list[Path], episodes: list, every: int) -> tuple[lis
     return [e for p, e in zip(paths, episodes) if p not in val], [e for p, e in zip(paths, episodes) if p in val]
 
 
-def eta_on_validation(model, encoder, val_eps, held_eps, held_videos, cfg) -> dict:
+def eta_on_validation(model, encoder, val_eps, held_eps, held_curves, cfg) -> dict:
     """The eta with the best termination F1 on the validation episodes, and the held-out real
-    episodes' termination scored once at it."""
-    val, _ = evaluate_videos(model, encoder, val_eps, [_video(ep, cfg.camera) for ep in val_eps], cfg.frame_stride,
+    episodes' termination at it, read off their already scored (steps, R) curves."""
+    val, _ = evaluate_videos(model, encoder, val_eps, [ep.video(cfg.camera) for ep in val_eps], cfg.frame_stride,
                              cfg.eta)
     chosen = best_eta({e: v["termination_f1"] for e, v in val["eta_sweep"].items()}, cfg.eta)
-    at_chosen, _ = evaluate_videos(model, encoder, held_eps, held_videos, cfg.frame_stride, chosen)
+    at_chosen = termination_metrics([StopOutcome(first_success(ep.success), first_stop(steps, scores, chosen))
+                                     for ep, (steps, scores) in zip(held_eps, held_curves)])
     return {"episodes": len(val_eps), "eta_sweep": val["eta_sweep"], "chosen_eta": chosen,
-            "real_termination_at_chosen_eta": at_chosen["termination"]["all"]}
-
-
-def _video(ep, camera: str) -> torch.Tensor:
-    return torch.from_numpy(ep.images[camera]).permute(0, 3, 1, 2)
+            "real_termination_at_chosen_eta": at_chosen}
 
 
 def train(cfg, model, model_cfg: dict, meta: dict, sampler: PrefixSampler, encoder, work: Path, device) -> list[dict]:

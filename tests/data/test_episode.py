@@ -94,3 +94,10 @@ def test_meta_normalises_numpy_scalars():
                     init_state_index=np.int32(-1), seed=np.uint32(5), source="policy",
                     success=np.bool_(True), fps=np.float32(20))
     assert type(m.task_id) is int and type(m.seed) is int and m.success is True and type(m.fps) is float
+
+
+def test_video_is_one_cameras_frames_channels_first(episode):
+    cam = next(iter(episode.images))
+    video = episode.video(cam)
+    assert video.shape == (episode.num_frames, 3, *episode.images[cam].shape[1:3])
+    assert (video.permute(0, 2, 3, 1).numpy() == episode.images[cam]).all()

@@ -132,6 +132,12 @@ class Episode:
     def num_frames(self) -> int:
         return self.length + 1
 
+    def video(self, camera: str):
+        """One camera's frames as a torch uint8 tensor (T+1, 3, H, W), what the models read."""
+        import torch  # (lazily: the episode format itself needs numpy only)
+
+        return torch.from_numpy(self.images[camera]).permute(0, 3, 1, 2)
+
     def copy(self) -> "Episode":
         return copy.deepcopy(self)
 

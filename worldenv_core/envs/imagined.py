@@ -170,7 +170,7 @@ def open_loop_fidelity(sim: ImaginedSimulator, episodes, horizons=(8, 16, 32, 64
     rows = {h: {key: [] for key in keys} for h in horizons}
     videos = []
     for ep in episodes:
-        imgs = torch.from_numpy(ep.images[camera]).permute(0, 3, 1, 2)  # (T+1, 3, H, W)
+        imgs = ep.video(camera)
         proprio = torch.from_numpy(ep.proprio).double()
         actions = torch.from_numpy(ep.actions).float()
         last_start = ep.length - n_chunks * k

@@ -6,8 +6,8 @@ Its label is y_t (1 from the oracle's first success onward), or with `label_dela
 settled label: 1 from d steps after the first success. The oracle reports a pick-and-place done
 the moment the object touches its target, still in the gripper, and that frame looks like a
 failed rollout holding the object just above the target; a reflector trained on settled labels
-waits for the release, stops a few steps later and stops far less often on such near misses. Positives are rare (a demo that
-stops at success has one positive frame), so each batch draws half positives and half
+waits for the release, stops a few steps later and stops far less often on such near misses.
+Positives are rare (a demo that stops at success has one positive frame), so each batch draws half positives and half
 negatives; `hard_negative_fraction` of the negatives come from the last `hard_window` frames
 before a success, where a premature stop would cost an episode, plus (when mining is on)
 the negatives the model itself currently scores highest: the near misses of failed rollouts,
@@ -47,7 +47,7 @@ class PrefixSampler:
 
     def __init__(self, episodes, camera: str, stride: int, max_frames: int, hard_negative_fraction: float = 0.25,
                  hard_window: int = 16, label_delay: int = 0):
-        self.frames = [torch.from_numpy(ep.images[camera]).permute(0, 3, 1, 2) for ep in episodes]  # (T+1, 3, H, W)
+        self.frames = [ep.video(camera) for ep in episodes]
         self.instructions = [ep.meta.instruction for ep in episodes]
         self.stride, self.max_frames = int(stride), int(max_frames)
         self.labels = [settled_labels(ep.success, label_delay) for ep in episodes]
