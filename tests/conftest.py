@@ -4,6 +4,7 @@ import os
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
+import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 # The CI task: libero_object task 0 ("pick the alphabet soup and place it in the basket").
@@ -18,3 +19,34 @@ def tiny_env():
     env = LiberoEnv(TINY_SUITE, TINY_TASK, cameras=["agentview", "robot0_eye_in_hand"], image_size=64)
     yield env
     env.close()
+
+
+def synthetic_episode(rng, size=16, length=24, colour=0, succeed_at=None):
+    """A noisy video where a square of `colour` (the instruction: 'red' or 'blue') appears at
+    `succeed_at`; a square of the other colour is a distractor that never counts."""
+    from worldenv_core.data.episode import Episode, EpisodeMeta
+
+    imgs = rng.integers(0, 60, (length + 1, size, size, 3), dtype=np.uint8)
+    distractor_at = int(rng.integers(2, length))
+    imgs[distractor_at:, 2:6, 2:6, 1 - colour] = 255
+    success = np.zeros(length + 1, dtype=bool)
+    if succeed_at is not None:
+        imgs[succeed_at:, 9:14, 9:14, colour] = 255
+        success[succeed_at:] = True
+    meta = EpisodeMeta(suite="libero_object", task_id=colour, task_name="t", instruction=["red", "blue"][colour],
+                       init_state_index=-1, seed=0, source="policy", success=success[-1], cameras=["agentview"])
+    z = np.zeros((length + 1, 7))
+    return Episode(meta=meta, images={"agentview": imgs}, proprio=z, joint_pos=z, sim_state=np.zeros((length + 1, 0)),
+                   success=success, actions=np.zeros((length, 7)))
+
+
+def _synthetic_episodes(seed, n):
+    rng = np.random.default_rng(seed)
+    return [synthetic_episode(rng, colour=i % 2, succeed_at=int(rng.integers(6, 24)) if i % 3 else None)
+            for i in range(n)]
+
+
+@pytest.fixture
+def synthetic_episodes():
+    """(seed, n) -> n synthetic 'red'/'blue' square episodes, two thirds of them succeeding."""
+    return _synthetic_episodes

@@ -21,7 +21,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from worldenv_core.data.selection import episode_key, holdout_split, load_split
+from worldenv_core.data.selection import episode_key, load_split
 from worldenv_core.manifest import ArtefactError, StageRun
 from worldenv_core.metrics import binary_metrics
 from worldenv_core.models.checkpoint import save_model
@@ -42,7 +42,9 @@ def validate(cfg: DictConfig) -> None:
                 "frame_stride", "reflector.max_frames"):
         positive_int(cfg, key)
     positive_int(cfg, "train.label_delay", allow_zero=True)
-    positive_int(cfg, "validation_every", allow_zero=True)
+    positive_int(cfg, "eta_folds", allow_zero=True)
+    if cfg.eta_folds == 1:
+        raise ConfigError("eta_folds must be 0 (eta as configured) or at least 2 (K-fold cross-validation), got 1")
     try:
         check_eta(cfg.eta)
     except ValueError as e:
@@ -68,35 +70,17 @@ def run(cfg: DictConfig) -> dict:
     tags = {"task": task.name, "scale": cfg.scale.name, "data": "expert" if cfg.expert_only else "expert+policy"}
     with StageRun(manifest, "train_reflector", tags, config) as stage:
         train_paths, held, episodes, held_eps = load_split(manifest, stage, cfg)
-        episodes, val_eps = split_validation(train_paths, episodes, cfg.validation_every)
-        # named by what defines the training and its inputs, not by how it is evaluated or shown:
-        # changing imagined.* or plots re-evaluates the finished run instead of training anew
+        # named by what defines the training and its inputs, not by how it is evaluated, shown or
+        # how eta is chosen: changing imagined.*, plots or eta_folds re-evaluates a finished run
         work = work_dir(cfg.experiment_dir, "train_reflector",
-                        {k: v for k, v in config.items() if k not in ("imagined", "plots")}, stage.inputs)
-        try:
-            sampler = PrefixSampler(episodes, cfg.camera, cfg.frame_stride, cfg.reflector.max_frames,
-                                    cfg.train.hard_negative_fraction, cfg.train.hard_window,
-                                    cfg.train.label_delay)
-        except ValueError as e:
-            raise ConfigError(f"{e}; collect more episodes (policy rollouts give failures)") from None
-        model_cfg = OmegaConf.to_container(cfg.reflector, resolve=True)
-        model = instantiate(model_cfg, _convert_="all").to(device)
-        meta = {"kind": "reflector", "task": task.name, "suite": task.suite, "camera": cfg.camera,
-                "image_size": task.image_size, "frame_stride": cfg.frame_stride, "eta": float(cfg.eta),
-                "label_delay": cfg.train.label_delay,
-                "episodes": len(episodes), "held_out": [episode_key(p) for p in held], **sampler.counts()}
+                        {k: v for k, v in config.items() if k not in ("imagined", "plots", "eta_folds")}, stage.inputs)
         encoder = InstructionEncoder()
         t0 = time.perf_counter()
-        if getattr(model, "trainable", True):
-            log.info("training on %d episodes (%s; %d held out) for %d steps on %s; work dir %s", len(episodes),
-                     sampler.counts(), len(held_eps), cfg.train.steps, device, work)
-            history = train(cfg, model, model_cfg, meta, sampler, encoder, work, device)
+        model, model_cfg, meta, history = fit(cfg, episodes, work, device, encoder,
+                                              {"held_out": [episode_key(p) for p in held]})
+        if history:
             stage.add_output(plot_history(history, work / "losses.png", f"train_reflector {task.name}"), kind="plot")
-        else:  # the VLM yes/no mode: nothing to train, its checkpoint is the config naming the VLM
-            log.info("%s has nothing to train: evaluating it on %d held-out episodes", type(model).__name__,
-                     len(held_eps))
         train_s = time.perf_counter() - t0
-        model = model.cpu().eval()
         final = save_model(work / "reflector", model, model_cfg, {**meta, "step": cfg.train.steps})
         for f in sorted(final.iterdir()):
             stage.add_output(f, kind="checkpoint")
@@ -113,9 +97,12 @@ def run(cfg: DictConfig) -> dict:
         for kind, vids in videos.items():
             eps = held_eps if kind == "real" else imagined_eps
             report[kind], curves[kind] = evaluate_videos(model, encoder, eps, vids, cfg.frame_stride, cfg.eta)
-        if val_eps:
-            report["validation"] = eta_on_validation(model, encoder, val_eps, held_eps, curves["real"], cfg)
         report["eval_wall_s"] = round(time.perf_counter() - t1, 1)
+        if cfg.eta_folds:
+            t2 = time.perf_counter()
+            report["cross_validation"] = eta_by_cross_validation(cfg, train_paths, episodes, work, device, encoder,
+                                                           held_eps, curves["real"])
+            report["cross_validation"]["wall_s"] = round(time.perf_counter() - t2, 1)
         write_report(report, curves, held_eps, imagined_eps, cfg, work)
         for name in ("reflector_eval.json", "reflector_eval.md", "reflector_curves.png"):
             stage.add_output(work / name, kind="report" if name.endswith(("json", "md")) else "plot")
@@ -125,28 +112,68 @@ def run(cfg: DictConfig) -> dict:
     return stage.metrics
 
 
-def split_validation(paths: list[Path], episodes: list, every: int) -> tuple[list, list]:
-    """Every `every`-th training episode (0: none) is kept out of training to choose eta on, so
-    the held-out test episodes are never used to choose anything. -> (training, validation)."""
-    if not every:
-        return episodes, []
-    fit, val = holdout_split(paths, every)
-    if not fit:
-        raise ConfigError(f"validation_every={every} leaves no training episodes (of {len(paths)})")
-    val = set(val)
-    return [e for p, e in zip(paths, episodes) if p not in val], [e for p, e in zip(paths, episodes) if p in val]
+def fit(cfg, episodes: list, work: Path, device, encoder, meta_extra: dict):
+    """Train (or resume, or find finished in `work`) a reflector on `episodes`.
+    -> (model on the CPU in eval mode, its config, its meta, the loss history; [] when untrainable)."""
+    try:
+        sampler = PrefixSampler(episodes, cfg.camera, cfg.frame_stride, cfg.reflector.max_frames,
+                                cfg.train.hard_negative_fraction, cfg.train.hard_window, cfg.train.label_delay)
+    except ValueError as e:
+        raise ConfigError(f"{e}; collect more episodes (policy rollouts give failures)") from None
+    model_cfg = OmegaConf.to_container(cfg.reflector, resolve=True)
+    model = instantiate(model_cfg, _convert_="all").to(device)
+    task = cfg.task
+    meta = {"kind": "reflector", "task": task.name, "suite": task.suite, "camera": cfg.camera,
+            "image_size": task.image_size, "frame_stride": cfg.frame_stride, "eta": float(cfg.eta),
+            "label_delay": cfg.train.label_delay, "episodes": len(episodes), **meta_extra, **sampler.counts()}
+    history = []
+    if getattr(model, "trainable", True):
+        log.info("training on %d episodes (%s) for %d steps on %s; work dir %s", len(episodes), sampler.counts(),
+                 cfg.train.steps, device, work)
+        history = train(cfg, model, model_cfg, meta, sampler, encoder, work, device)
+    else:  # the VLM yes/no mode: nothing to train, its checkpoint is the config naming the VLM
+        log.info("%s has nothing to train", type(model).__name__)
+    return model.cpu().eval(), model_cfg, meta, history
 
 
-def eta_on_validation(model, encoder, val_eps, held_eps, held_curves, cfg) -> dict:
-    """The eta with the best termination F1 on the validation episodes, and the held-out real
-    episodes' termination at it, read off their already scored (steps, R) curves."""
-    val, _ = evaluate_videos(model, encoder, val_eps, [ep.video(cfg.camera) for ep in val_eps], cfg.frame_stride,
-                             cfg.eta)
-    chosen = best_eta({e: v["termination_f1"] for e, v in val["eta_sweep"].items()}, cfg.eta)
+def cross_validation_folds(paths: list[Path], folds: int) -> list[list[int]]:
+    """K folds of the training episodes (indices), every K-th in sorted path order, so each fold
+    mixes tasks and sources like the whole; a fold must leave something to train on."""
+    if folds > len(paths) or folds < 2:
+        raise ConfigError(f"eta_folds={folds} needs 2 <= folds <= the {len(paths)} training episodes")
+    order = sorted(range(len(paths)), key=lambda i: paths[i])
+    return [order[k::folds] for k in range(folds)]
+
+
+def eta_by_cross_validation(cfg, paths: list[Path], episodes: list, work: Path, device, encoder,
+                            held_eps, held_curves) -> dict:
+    """Choose eta by K-fold cross-validation over the training episodes: K reflectors, each trained
+    without one fold (in work/folds/, resumable), score the fold they did not see; eta is the one
+    with the best termination F1 over all those out-of-fold episodes. The held-out test episodes
+    choose nothing: their termination at the chosen eta is read off their already scored curves."""
+    folds = cross_validation_folds(paths, cfg.eta_folds)
+    outcomes = {e: [] for e in ETA_SWEEP}
+    for k, fold in enumerate(folds):
+        keep = set(fold)
+        fit_eps = [ep for i, ep in enumerate(episodes) if i not in keep]
+        val_eps = [episodes[i] for i in fold]
+        log.info("eta cross-validation: fold %d of %d (%d episodes held out of %d)", k + 1, len(folds),
+                 len(val_eps), len(episodes))
+        model, *_ = fit(cfg, fit_eps, work / "folds" / f"{k + 1}-of-{len(folds)}", device, encoder,
+                        {"held_out": [episode_key(paths[i]) for i in fold]})
+        _, curves = evaluate_videos(model, encoder, val_eps, [ep.video(cfg.camera) for ep in val_eps],
+                                    cfg.frame_stride, cfg.eta)
+        for ep, (steps, scores) in zip(val_eps, curves):
+            for e in ETA_SWEEP:
+                outcomes[e].append(StopOutcome(first_success(ep.success), first_stop(steps, scores, e)))
+    sweep = {str(e): termination_metrics(o) for e, o in outcomes.items()}
+    chosen = best_eta({e: m["f1"] for e, m in sweep.items()}, cfg.eta)
     at_chosen = termination_metrics([StopOutcome(first_success(ep.success), first_stop(steps, scores, chosen))
                                      for ep, (steps, scores) in zip(held_eps, held_curves)])
-    return {"episodes": len(val_eps), "eta_sweep": val["eta_sweep"], "chosen_eta": chosen,
-            "real_termination_at_chosen_eta": at_chosen}
+    return {"folds": len(folds), "episodes": len(episodes),
+            "eta_sweep": {e: {"termination_f1": m["f1"], "episodes": m["episodes"], "false_stops": m["false_stops"],
+                              "missed_successes": m["missed_successes"]} for e, m in sweep.items()},
+            "chosen_eta": chosen, "real_termination_at_chosen_eta": at_chosen}
 
 
 def train(cfg, model, model_cfg: dict, meta: dict, sampler: PrefixSampler, encoder, work: Path, device) -> list[dict]:
@@ -272,8 +299,8 @@ def evaluate_videos(model, encoder, episodes, videos, stride: int, eta: float) -
 
 def _headline(report: dict) -> dict:
     out = {}
-    if "validation" in report:
-        v = report["validation"]
+    if "cross_validation" in report:
+        v = report["cross_validation"]
         out.update(chosen_eta=v["chosen_eta"], real_termination_f1_at_chosen_eta=v["real_termination_at_chosen_eta"]["f1"])
     for kind in ("real", "imagined"):
         if kind in report:
@@ -302,9 +329,11 @@ def write_report(report: dict, curves: dict, held_eps, imagined_eps, cfg, work: 
     md += ["", "Termination F1 by eta: | eta | " + " | ".join(kinds) + " |", "|---|" + "---|" * len(kinds)]
     md += [f"| {e} | " + " | ".join(f"{report[k]['eta_sweep'][str(e)]['termination_f1']:.3f}" for k in kinds) + " |"
            for e in ETA_SWEEP]
-    if "validation" in report:
-        v, t = report["validation"], report["validation"]["real_termination_at_chosen_eta"]
-        md += ["", f"eta chosen on {v['episodes']} validation episodes (held out of training): {v['chosen_eta']}; "
+    if "cross_validation" in report:
+        v, t = report["cross_validation"], report["cross_validation"]["real_termination_at_chosen_eta"]
+        md += ["", f"eta chosen by {v['folds']}-fold cross-validation over the {v['episodes']} training episodes "
+               f"(out-of-fold termination F1 by eta: " + ", ".join(f"{e} {m['termination_f1']:.3f}" for e, m in
+                                                                 v["eta_sweep"].items()) + f"): {v['chosen_eta']}; "
                f"held-out real termination at it: precision {t['precision']:.3f}, recall {t['recall']:.3f}, "
                f"**F1 {t['f1']:.3f}** ({t['false_stops']} false stops, {t['missed_successes']} missed successes)"]
     (work / "reflector_eval.md").write_text("\n".join(md) + "\n")

@@ -5,7 +5,6 @@ import pytest
 import torch
 from hydra.utils import instantiate
 
-from worldenv_core.data.episode import Episode, EpisodeMeta
 from worldenv_core.models.checkpoint import CheckpointError, save_model
 from worldenv_core.models.reflector import (IncrementalScorer, ReflectorStop, check_eta, load_reflector,
                                             score_prefixes, subsample_indices)
@@ -28,37 +27,14 @@ def test_subsample_keeps_first_and_last_and_spreads_uniformly():
     assert len(prefix_frames(300, 1, 32)) == 32
 
 
-def synthetic_episode(rng, size=16, length=24, colour=0, succeed_at=None):
-    """A noisy video where a square of `colour` (the instruction: 'red' or 'blue') appears at
-    `succeed_at`; a square of the other colour is a distractor that never counts."""
-    imgs = rng.integers(0, 60, (length + 1, size, size, 3), dtype=np.uint8)
-    distractor_at = int(rng.integers(2, length))
-    imgs[distractor_at:, 2:6, 2:6, 1 - colour] = 255
-    success = np.zeros(length + 1, dtype=bool)
-    if succeed_at is not None:
-        imgs[succeed_at:, 9:14, 9:14, colour] = 255
-        success[succeed_at:] = True
-    meta = EpisodeMeta(suite="libero_object", task_id=colour, task_name="t", instruction=["red", "blue"][colour],
-                       init_state_index=-1, seed=0, source="policy", success=success[-1], cameras=["agentview"])
-    z = np.zeros((length + 1, 7))
-    return Episode(meta=meta, images={"agentview": imgs}, proprio=z, joint_pos=z, sim_state=np.zeros((length + 1, 0)),
-                   success=success, actions=np.zeros((length, 7)))
-
-
-def episodes(seed, n):
-    rng = np.random.default_rng(seed)
-    return [synthetic_episode(rng, colour=i % 2, succeed_at=int(rng.integers(6, 24)) if i % 3 else None)
-            for i in range(n)]
-
-
 LANG = {"red": torch.nn.functional.one_hot(torch.tensor(0), 16).float(),
         "blue": torch.nn.functional.one_hot(torch.tensor(1), 16).float()}
 
 
-def test_a_tiny_reflector_learns_a_synthetic_instruction_dependent_success_task():
+def test_a_tiny_reflector_learns_a_synthetic_instruction_dependent_success_task(synthetic_episodes):
     torch.manual_seed(0)
     model = instantiate(small_config())
-    sampler = PrefixSampler(episodes(0, 24), "agentview", stride=4, max_frames=8, hard_negative_fraction=0.25,
+    sampler = PrefixSampler(synthetic_episodes(0, 24), "agentview", stride=4, max_frames=8, hard_negative_fraction=0.25,
                             hard_window=4)
     opt = torch.optim.Adam(model.parameters(), lr=3e-3)
     for step in range(150):
@@ -70,7 +46,7 @@ def test_a_tiny_reflector_learns_a_synthetic_instruction_dependent_success_task(
         opt.step()
     model.eval()
     correct = total = 0
-    for ep in episodes(1, 12):  # held out
+    for ep in synthetic_episodes(1, 12):  # held out
         video = torch.from_numpy(ep.images["agentview"]).permute(0, 3, 1, 2)
         steps = list(range(0, ep.length + 1, 4))
         probs = score_prefixes(model, video, LANG[ep.meta.instruction], steps)
@@ -150,8 +126,8 @@ def test_frozen_hf_tower_trains_only_the_aggregator_and_head(tmp_path):
     assert all(p.grad is None for p in model.frame_encoder.parameters())
 
 
-def test_mining_makes_high_scoring_negatives_hard_and_never_positives():
-    eps = episodes(2, 6)
+def test_mining_makes_high_scoring_negatives_hard_and_never_positives(synthetic_episodes):
+    eps = synthetic_episodes(2, 6)
     sampler = PrefixSampler(eps, "agentview", stride=4, max_frames=8, hard_negative_fraction=1.0, hard_window=4)
     window = {tuple(x) for x in sampler.hard}
     # a "model" that calls every prefix ending at frame 8 of episode 0 and frame 12 of episode 3 a success
@@ -177,8 +153,8 @@ def test_settled_labels_turn_on_delay_steps_after_the_first_success():
     assert not settled_labels(np.zeros(5, dtype=bool), 3).any()
 
 
-def test_label_delay_moves_the_positives_and_the_hard_window_with_them():
-    eps = episodes(3, 6)
+def test_label_delay_moves_the_positives_and_the_hard_window_with_them(synthetic_episodes):
+    eps = synthetic_episodes(3, 6)
     plain = PrefixSampler(eps, "agentview", stride=4, max_frames=8, hard_window=4)
     late = PrefixSampler(eps, "agentview", stride=4, max_frames=8, hard_window=4, label_delay=3)
     assert len(late.pos) == len(plain.pos) - 3 * sum(ep.success.any() for ep in eps)

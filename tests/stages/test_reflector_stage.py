@@ -6,7 +6,7 @@ import pytest
 
 from stages.evaluate.run import run as evaluate
 from stages.train_reflector.run import run as train_reflector
-from stages.train_reflector.run import split_validation
+from stages.train_reflector.run import ETA_SWEEP, cross_validation_folds, eta_by_cross_validation
 from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.manifest import ArtefactError, Manifest
 from worldenv_core.models.reflector import load_reflector
@@ -66,8 +66,12 @@ def test_train_reflector_resumes_and_rejects_bad_settings(trained):
         train_reflector(cfg("train_reflector", exp, *SMALL, "eta=1.5"))
     with pytest.raises(ConfigError, match="train.mine.every must .* divide train.checkpoint_every"):
         train_reflector(cfg("train_reflector", exp, *SMALL, "train.mine.every=2"))
-    with pytest.raises(ConfigError, match=r"validation_every must be an integer >= 0, got -2"):
-        train_reflector(cfg("train_reflector", exp, *SMALL, "validation_every=-2"))
+    with pytest.raises(ConfigError, match=r"eta_folds must be an integer >= 0, got -2"):
+        train_reflector(cfg("train_reflector", exp, *SMALL, "eta_folds=-2"))
+    with pytest.raises(ConfigError, match=r"eta_folds must be 0 .* or at least 2"):
+        train_reflector(cfg("train_reflector", exp, *SMALL, "eta_folds=1"))
+    with pytest.raises(ConfigError, match=r"eta_folds=2 needs 2 <= folds <= the 1 training episodes"):
+        train_reflector(cfg("train_reflector", exp, *SMALL, "expert_only=true", "eta_folds=2"))
     with pytest.raises(ConfigError, match=r"train.label_delay must be an integer >= 0, got -1"):
         train_reflector(cfg("train_reflector", exp, *SMALL, "train.label_delay=-1"))
     with pytest.raises(ConfigError, match="source=policy.*expert_only=true"):
@@ -121,10 +125,36 @@ def test_evaluate_all_equals_three_separate_runs(with_policy):
     assert together["fixed"]["per_task"][0]["mean_steps"] == 280
 
 
-def test_validation_episodes_are_split_off_training_and_never_trained_on():
-    paths = [Path(f"c/task00/e{i}.mcap") for i in range(6)]
-    fit, val = split_validation(paths, [f"ep{i}" for i in range(6)], every=3)
-    assert fit == ["ep0", "ep1", "ep3", "ep4"] and val == ["ep2", "ep5"]
-    assert split_validation(paths, list(range(6)), every=0) == (list(range(6)), [])
-    with pytest.raises(ConfigError, match="validation_every=1 leaves no training episodes"):
-        split_validation(paths, list(range(6)), every=1)
+def test_cross_validation_folds_partition_the_training_episodes_in_sorted_order():
+    paths = [Path(f"c/task00/e{i}.mcap") for i in (3, 0, 5, 1, 4, 2)]
+    folds = cross_validation_folds(paths, 3)
+    assert [[paths[i].stem for i in f] for f in folds] == [["e0", "e3"], ["e1", "e4"], ["e2", "e5"]]
+    assert sorted(i for f in folds for i in f) == list(range(6))
+    with pytest.raises(ConfigError, match="eta_folds=7 needs 2 <= folds <= the 6 training episodes"):
+        cross_validation_folds(paths, 7)
+
+
+def test_eta_by_cross_validation_scores_every_training_episode_out_of_fold_and_resumes(tmp_path, synthetic_episodes):
+    """Two fold reflectors on synthetic episodes: each episode is scored once, by the model that
+    did not train on it; the held-out curves are judged at the chosen eta; a rerun trains nothing."""
+    from worldenv_core.models.checkpoint import read_config
+    from worldenv_core.models.text import InstructionEncoder
+    from worldenv_core.rl.termination import StopOutcome, first_stop, termination_metrics
+
+    eps = synthetic_episodes(0, 8)
+    paths = [Path(f"c/task00/e{i}.mcap") for i in range(8)]
+    c = compose_config("train_reflector", ["+task=tiny", "scale=tiny", "eta_folds=2", "frame_stride=4",
+                                           *[o for o in SMALL if not o.startswith(("holdout", "plots"))]])
+    held = synthetic_episodes(1, 3)
+    held_curves = [(list(range(0, 25, 4)), [0.05 * i * (k + 1) for i in range(7)]) for k in range(3)]
+    out = eta_by_cross_validation(c, paths, eps, tmp_path, "cpu", InstructionEncoder(), held, held_curves)
+    assert out["folds"] == 2 and out["episodes"] == 8 and out["chosen_eta"] in ETA_SWEEP
+    assert all(m["episodes"] == 8 for m in out["eta_sweep"].values())  # every training episode once, out of fold
+    for k, fold in enumerate(cross_validation_folds(paths, 2)):
+        meta = read_config(tmp_path / "folds" / f"{k + 1}-of-2" / "checkpoints" / "last")["meta"]
+        assert meta["held_out"] == [f"c/task00/e{i}.mcap" for i in fold] and meta["episodes"] == 4
+    expected = termination_metrics([StopOutcome(first_success(ep.success), first_stop(s, r, out["chosen_eta"]))
+                                    for ep, (s, r) in zip(held, held_curves)])
+    assert out["real_termination_at_chosen_eta"] == expected
+    again = eta_by_cross_validation(c, paths, eps, tmp_path, "cpu", InstructionEncoder(), held, held_curves)
+    assert again == out  # resumed from the finished fold checkpoints: same models, same choice
