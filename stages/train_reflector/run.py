@@ -70,14 +70,22 @@ def run(cfg: DictConfig) -> dict:
     tags = {"task": task.name, "scale": cfg.scale.name, "data": "expert" if cfg.expert_only else "expert+policy"}
     with StageRun(manifest, "train_reflector", tags, config) as stage:
         train_paths, held, episodes, held_eps = load_split(manifest, stage, cfg)
+        key = {k: v for k, v in config.items() if k not in ("imagined", "plots", "eta_folds")}
+        # train.with_imagined is named by the world model it imagines with (below), if on
+        key["train"] = {k: v for k, v in key["train"].items() if k != "with_imagined"}
+        dreamed = None
+        if cfg.train.with_imagined:  # the world simulator's replays of the training episodes, real labels
+            worldsim = resolve_checkpoint(stage, cfg.imagined.worldsim_from, "train_worldsim", task.name, cfg.scale.name)
+            dreamed = imagined_copies(cfg, worldsim, episodes)
+            key["imagined_from"] = Path(worldsim).parent.name
         # named by what defines the training and its inputs, not by how it is evaluated, shown or
         # how eta is chosen: changing imagined.*, plots or eta_folds re-evaluates a finished run
-        work = work_dir(cfg.experiment_dir, "train_reflector",
-                        {k: v for k, v in config.items() if k not in ("imagined", "plots", "eta_folds")}, stage.inputs)
+        work = work_dir(cfg.experiment_dir, "train_reflector", key, stage.inputs)
         encoder = InstructionEncoder()
         t0 = time.perf_counter()
-        model, model_cfg, meta, history = fit(cfg, episodes, work, device, encoder,
-                                              {"held_out": [episode_key(p) for p in held]})
+        model, model_cfg, meta, history = fit(cfg, episodes + (dreamed or []), work, device, encoder,
+                                              {"held_out": [episode_key(p) for p in held],
+                                               "imagined_episodes": len(dreamed or [])})
         if history:
             stage.add_output(plot_history(history, work / "losses.png", f"train_reflector {task.name}"), kind="plot")
         train_s = time.perf_counter() - t0
@@ -101,7 +109,7 @@ def run(cfg: DictConfig) -> dict:
         if cfg.eta_folds:
             t2 = time.perf_counter()
             report["cross_validation"] = eta_by_cross_validation(cfg, train_paths, episodes, work, device, encoder,
-                                                           held_eps, curves["real"])
+                                                                 held_eps, curves["real"], dreamed)
             report["cross_validation"]["wall_s"] = round(time.perf_counter() - t2, 1)
         write_report(report, curves, held_eps, imagined_eps, cfg, work)
         for name in ("reflector_eval.json", "reflector_eval.md", "reflector_curves.png"):
@@ -146,16 +154,18 @@ def cross_validation_folds(paths: list[Path], folds: int) -> list[list[int]]:
 
 
 def eta_by_cross_validation(cfg, paths: list[Path], episodes: list, work: Path, device, encoder,
-                            held_eps, held_curves) -> dict:
+                            held_eps, held_curves, dreamed: list | None = None) -> dict:
     """Choose eta by K-fold cross-validation over the training episodes: K reflectors, each trained
     without one fold (in work/folds/, resumable), score the fold they did not see; eta is the one
     with the best termination F1 over all those out-of-fold episodes. The held-out test episodes
-    choose nothing: their termination at the chosen eta is read off their already scored curves."""
+    choose nothing: their termination at the chosen eta is read off their already scored curves.
+    `dreamed`: imagined copies of `episodes` (train.with_imagined), trained on with their fold."""
     folds = cross_validation_folds(paths, cfg.eta_folds)
     outcomes = {e: [] for e in ETA_SWEEP}
     for k, fold in enumerate(folds):
         keep = set(fold)
         fit_eps = [ep for i, ep in enumerate(episodes) if i not in keep]
+        fit_eps += [ep for i, ep in enumerate(dreamed or []) if i not in keep]  # scored on real video only
         val_eps = [episodes[i] for i in fold]
         log.info("eta cross-validation: fold %d of %d (%d episodes held out of %d)", k + 1, len(folds),
                  len(val_eps), len(episodes))
@@ -240,7 +250,6 @@ def imagine_held_out(cfg, stage: StageRun, held: list[Path], held_eps):
     """World-simulator replays of the held-out episodes the world model did not train on, or None
     when the experiment has no world simulator yet. `imagined.worldsim_from`: a train_worldsim
     record id or checkpoint folder; null = the latest of this task and scale."""
-    from worldenv_core.envs.imagined import ImaginedSimulator, replay_from_start
     from worldenv_core.models.checkpoint import read_config
 
     ref = cfg.imagined.worldsim_from
@@ -260,6 +269,14 @@ def imagine_held_out(cfg, stage: StageRun, held: list[Path], held_eps):
     if unseen is None:
         log.warning("world simulator %s does not list its held-out episodes: some imagined episodes may be ones it "
                     "trained on", ckpt)
+    return eps, imagine(cfg, ckpt, eps)
+
+
+def imagine(cfg, ckpt: str, eps: list) -> list[torch.Tensor]:
+    """Open-loop replays of `eps` from their first frame and recorded actions by world simulator
+    `ckpt`, batched per task: per episode (T+1, 3, H, W) uint8."""
+    from worldenv_core.envs.imagined import ImaginedSimulator, replay_from_start
+
     out = {}
     g = torch.Generator().manual_seed(cfg.seed)
     for tid in sorted({ep.meta.task_id for ep in eps}):
@@ -268,8 +285,18 @@ def imagine_held_out(cfg, stage: StageRun, held: list[Path], held_eps):
         group = [ep for ep in eps if ep.meta.task_id == tid]
         for ep, frames in zip(group, replay_from_start(sim, group, camera=cfg.camera, generator=g)):
             out[id(ep)] = frames
-    log.info("imagined %d held-out episodes with world simulator %s", len(eps), ckpt)
-    return eps, [out[id(ep)] for ep in eps]
+    log.info("imagined %d episodes with world simulator %s", len(eps), ckpt)
+    return [out[id(ep)] for ep in eps]
+
+
+def imagined_copies(cfg, ckpt: str, episodes: list) -> list:
+    """The training episodes as the world simulator imagines them (it trained on them), with the
+    real episodes' oracle flags as labels: so the reflector also learns what success looks like in
+    the world model's rendering, which is where post-training asks it."""
+    import dataclasses
+
+    return [dataclasses.replace(ep, images={cfg.camera: frames.permute(0, 2, 3, 1).numpy()})
+            for ep, frames in zip(episodes, imagine(cfg, ckpt, episodes))]
 
 
 def evaluate_videos(model, encoder, episodes, videos, stride: int, eta: float) -> tuple[dict, list]:

@@ -10,11 +10,16 @@ from stages.train_reflector.run import run as train_reflector
 from stages.train_worldsim.run import run as train_worldsim
 from worldenv_core.manifest import Manifest
 from worldenv_core.models.policy import load_policy
+from worldenv_core.models.reflector import load_reflector
 from worldenv_core.stage import ConfigError, compose_config
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
 LOOP = ["expert_only=true", "rl.iterations=2", "rl.contexts_per_iteration=1", "rl.n_rollouts=2", "rl.horizon=16",
         "rl.minibatch=2", "eval.every=2", "eval.init_states=1", "eval.workers=1", "progress=false"]
+
+REFLECTOR = ["expert_only=true", "train.steps=2", "train.batch_size=2", "holdout_every=2", "reflector.d_model=16",
+             "reflector.layers=1", "reflector.heads=2", "reflector.frame_encoder.widths=[8,16]",
+             "reflector.frame_encoder.keypoints=4", "plots=1", "imagined.enabled=false"]
 
 
 def cfg(stage, exp, *overrides):
@@ -30,10 +35,7 @@ def trained(demo_experiment):
                        "flow.batch_size=2", "holdout_every=2", "worldsim.ae_widths=[8,16]", "worldsim.width=16",
                        "worldsim.map_channels=4", "fidelity.horizons=[8]", "fidelity.starts_per_episode=1",
                        "fidelity.videos=0", "worldsim.sampling_steps=1"))
-    train_reflector(cfg("train_reflector", exp, "expert_only=true", "train.steps=2", "train.batch_size=2",
-                        "holdout_every=2", "reflector.d_model=16", "reflector.layers=1", "reflector.heads=2",
-                        "reflector.frame_encoder.widths=[8,16]", "reflector.frame_encoder.keypoints=4", "plots=1",
-                        "imagined.enabled=false"))
+    train_reflector(cfg("train_reflector", exp, *REFLECTOR))
     return exp, post_train_loop(cfg("post_train_loop", exp, *LOOP))
 
 
@@ -98,3 +100,19 @@ def test_evaluate_the_post_trained_policy_by_name(trained):
     section = report.split("## Post-training (LOOP in imagination)")[1].split("\n## ")[0]
     assert "| 0.5 | 2 |" in section and " -> " in section  # imagined reward first -> last iterations
     assert "post_training.png" in section and (Path(exp) / "report" / "post_training.png").exists()
+
+
+def test_reflector_also_trains_on_the_world_simulators_replays_of_its_episodes(trained):
+    """train.with_imagined: each training episode once more as the world simulator imagines it,
+    with the real episode's labels; the world model becomes an input and names the run."""
+    exp, _ = trained
+    m = Manifest(exp)
+    real_only = m.latest("train_reflector", task="tiny")
+    train_reflector(cfg("train_reflector", exp, *REFLECTOR, "train.with_imagined=true"))
+    both = Manifest(exp).latest("train_reflector", task="tiny")
+    assert both.id != real_only.id and m.latest("train_worldsim", task="tiny").id in both.inputs
+    metas = [load_reflector(next(p.parent for p in m.resolve(r) if p.name == "model.safetensors"))[1]
+             for r in (real_only, both)]
+    assert metas[1]["imagined_episodes"] == metas[0]["episodes"] == metas[1]["episodes"] // 2
+    assert metas[1]["positive_frames"] == 2 * metas[0]["positive_frames"]  # the imagined copies keep the labels
+    assert metas[0]["imagined_episodes"] == 0
