@@ -16,7 +16,7 @@ from worldenv_core.envs.collection import PolicyEvalJob, evaluate_policy_task
 from worldenv_core.envs.tasks import resolve_task_ids
 from worldenv_core.manifest import StageRun
 from worldenv_core.models.checkpoint import read_config
-from worldenv_core.models.reflector import check_eta
+from worldenv_core.models.reflector import check_eta, reflector_eta
 from worldenv_core.parallel import run_jobs
 from worldenv_core.report import write_report
 from worldenv_core.rl.termination import StopOutcome, termination_metrics
@@ -41,7 +41,8 @@ def validate(cfg: DictConfig) -> None:
     if cfg.workers is not None:
         positive_int(cfg, "workers")
     try:
-        check_eta(cfg.eta)
+        if cfg.eta is not None:  # null: the reflector's own
+            check_eta(cfg.eta)
     except ValueError as e:
         raise ConfigError(str(e)) from None
 
@@ -75,12 +76,13 @@ def run(cfg: DictConfig) -> dict:
         policy_path = [resolve_policy(cfg, s) for s in stages.values()][0]
         reflector_path = ([resolve_reflector(cfg, s) for s in stages.values()][0]
                           if cfg.termination in ("reflector", "all") else None)
+        eta = reflector_eta(reflector_path, cfg.eta) if reflector_path else None
         inits = list(range(cfg.init_states))
         jobs = [PolicyEvalJob(policy_path=policy_path, suite=task.suite, task_id=t, init_ids=tuple(inits[i:i + JOB_SIZE]),
                               cameras=tuple(task.cameras), image_size=task.image_size, chunk=task.chunk,
                               max_steps=task.max_steps, termination=cfg.termination,
                               video_ids=tuple(inits[:cfg.videos_per_task]), reflector_path=reflector_path,
-                              eta=float(cfg.eta))
+                              eta=eta)
                 for t in resolve_task_ids(task.suite, task.task_ids) for i in range(0, len(inits), JOB_SIZE)]
         rows, videos = [], {}
         for out in run_jobs(evaluate_policy_task, jobs, workers=cfg.workers, launcher=cfg.launcher,
@@ -92,20 +94,20 @@ def run(cfg: DictConfig) -> dict:
         for mode, stage in stages.items():
             out_dir = run_dir / mode if cfg.termination == "all" else run_dir
             summaries[mode] = record_mode(stage, cfg, mode, [r for r in rows if r["termination"] == mode],
-                                          videos, policy_path, reflector_path, out_dir)
+                                          videos, policy_path, reflector_path, eta, out_dir)
     report = write_report(manifest.root, task.name)  # the experiment's report, now with this evaluation
     log.info("experiment report: %s", report)
     return summaries if cfg.termination == "all" else summaries[cfg.termination]
 
 
 def record_mode(stage: StageRun, cfg: DictConfig, mode: str, rows: list[dict], videos: dict, policy_path: str,
-                reflector_path: str | None, out_dir: Path) -> dict:
+                reflector_path: str | None, eta: float | None, out_dir: Path) -> dict:
     """Write one termination mode's results, episodes and videos, and fill its manifest record."""
     out_dir.mkdir(parents=True, exist_ok=True)
     summary = summarise(rows)
     summary.update(policy=policy_path, termination=mode, init_states=cfg.init_states, report_dir=str(out_dir))
     if mode == "reflector":
-        summary.update(reflector=reflector_path, eta=float(cfg.eta), reflector_termination=termination_metrics(
+        summary.update(reflector=reflector_path, eta=eta, reflector_termination=termination_metrics(
             [StopOutcome(r["first_success_step"], r["stop_step"]) for r in rows if r["error"] is None]))
     (out_dir / "episodes.json").write_text(json.dumps(rows, indent=1))
     (out_dir / "results.json").write_text(json.dumps(summary, indent=2))

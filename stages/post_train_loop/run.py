@@ -30,7 +30,7 @@ from worldenv_core.kinematics.camera import PinholeCamera
 from worldenv_core.manifest import StageRun
 from worldenv_core.models.checkpoint import read_config, save_model
 from worldenv_core.models.policy import load_policy
-from worldenv_core.models.reflector import check_eta, load_reflector
+from worldenv_core.models.reflector import check_eta, load_reflector, reflector_eta
 from worldenv_core.models.text import InstructionEncoder
 from worldenv_core.parallel import run_jobs
 from worldenv_core.rl.imagined_env import Context, ImaginedEnv
@@ -56,7 +56,8 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"rl.n_rollouts must be at least 2 (the RLOO baseline averages the other N - 1), "
                           f"got {cfg.rl.n_rollouts}")
     try:
-        check_eta(cfg.rl.eta)
+        if cfg.rl.eta is not None:  # null: the reflector's own
+            check_eta(cfg.rl.eta)
     except ValueError as e:
         raise ConfigError(f"rl.{e}") from None
     if not cfg.rl.epsilon > 0:
@@ -75,7 +76,7 @@ def contexts_from_episodes(paths: list[Path], camera: str) -> list[Context]:
     return out
 
 
-def build_env(cfg, worldsim_path: str, reflector_path: str, encoder, device) -> tuple[ImaginedEnv, str]:
+def build_env(cfg, worldsim_path: str, reflector_path: str, eta: float, encoder, device) -> tuple[ImaginedEnv, str]:
     meta = read_config(worldsim_path)["meta"]
     contract = {"image_size": cfg.task.image_size, "chunk": cfg.task.chunk}
     cameras = {int(t): PinholeCamera.from_dict(c) for t, c in meta["cameras"].items()}
@@ -83,7 +84,7 @@ def build_env(cfg, worldsim_path: str, reflector_path: str, encoder, device) -> 
     reflector, rmeta = load_reflector(reflector_path, expect={"image_size": cfg.task.image_size}, device=str(device))
     if rmeta["camera"] != meta["camera"]:
         raise ConfigError(f"the reflector watches {rmeta['camera']!r} but the world simulator imagines {meta['camera']!r}")
-    return ImaginedEnv(sim, cameras, reflector, encoder, cfg.rl.eta, cfg.rl.horizon), meta["camera"]
+    return ImaginedEnv(sim, cameras, reflector, encoder, eta, cfg.rl.horizon), meta["camera"]
 
 
 def imagined_success(policy, env, contexts: list[Context], cfg, encoder) -> dict:
@@ -118,13 +119,16 @@ def run(cfg: DictConfig) -> dict:
     task, rl = cfg.task, cfg.rl
     device = pick_device(cfg.device)
     config = resolved(cfg)
-    tags = {"task": task.name, "scale": cfg.scale.name, "eta": float(rl.eta), "n_rollouts": int(rl.n_rollouts)}
+    tags = {"task": task.name, "scale": cfg.scale.name, "eta": None if rl.eta is None else float(rl.eta),
+            "n_rollouts": int(rl.n_rollouts)}
     with StageRun(manifest, "post_train_loop", tags, config) as stage:
         policy_path = resolve_policy(cfg, stage)
         worldsim_path = resolve_checkpoint(stage, cfg.worldsim_from, "train_worldsim", task.name, cfg.scale.name)
         reflector_path = resolve_checkpoint(stage, cfg.reflector_from, "train_reflector", task.name, cfg.scale.name)
         encoder = InstructionEncoder()
-        env, camera = build_env(cfg, worldsim_path, reflector_path, lambda s: encoder(s).to(device), device)
+        eta = reflector_eta(reflector_path, rl.eta)
+        stage.record.tags["eta"] = eta  # the threshold used, also when it is the reflector's own
+        env, camera = build_env(cfg, worldsim_path, reflector_path, eta, lambda s: encoder(s).to(device), device)
         policy, pmeta = load_policy(policy_path, expect={"image_size": task.image_size, "chunk": task.chunk},
                                     device=str(device))
         if policy.cameras != [camera]:
@@ -144,7 +148,7 @@ def run(cfg: DictConfig) -> dict:
         start_it, history = ckpts.restore(policy, {"ppo": optimizer})
         meta = {**pmeta, "post_trained_from": policy_path, "worldsim": worldsim_path, "reflector": reflector_path}
         log.info("post-training %s for %d iterations: %d contexts x %d rollouts each, eta %.2f, on %s; work dir %s",
-                 policy_path, rl.iterations, rl.contexts_per_iteration, rl.n_rollouts, rl.eta, device, work)
+                 policy_path, rl.iterations, rl.contexts_per_iteration, rl.n_rollouts, eta, device, work)
         encode = lambda s: encoder(s).to(device)  # noqa: E731
         imagine = (lambda: imagined_success(policy, env, contexts, cfg, encode)) if cfg.eval.imagined_contexts else dict
         if start_it == 0:

@@ -89,7 +89,16 @@ def run(cfg: DictConfig) -> dict:
         if history:
             stage.add_output(plot_history(history, work / "losses.png", f"train_reflector {task.name}"), kind="plot")
         train_s = time.perf_counter() - t0
-        final = save_model(work / "reflector", model, model_cfg, {**meta, "step": cfg.train.steps})
+        cv = None
+        if cfg.eta_folds:
+            t2 = time.perf_counter()
+            cv = cross_validate_eta(cfg, train_paths, episodes, work, device, encoder, dreamed)
+            cv["wall_s"] = round(time.perf_counter() - t2, 1)
+        # the checkpoint carries the threshold to use it at (evaluate / post_train_loop with eta=null);
+        # a cross-validated one is its own folder, so the plain one (and records naming it) stay as they are
+        eta, chosen_by = (cv["chosen_eta"], f"{cfg.eta_folds}-fold cross-validation") if cv else (float(cfg.eta), "config")
+        final = save_model(work / ("reflector" if cv is None else f"reflector-cv{cfg.eta_folds}"), model, model_cfg,
+                           {**meta, "eta": eta, "eta_chosen_by": chosen_by, "step": cfg.train.steps})
         for f in sorted(final.iterdir()):
             stage.add_output(f, kind="checkpoint")
 
@@ -106,11 +115,9 @@ def run(cfg: DictConfig) -> dict:
             eps = held_eps if kind == "real" else imagined_eps
             report[kind], curves[kind] = evaluate_videos(model, encoder, eps, vids, cfg.frame_stride, cfg.eta)
         report["eval_wall_s"] = round(time.perf_counter() - t1, 1)
-        if cfg.eta_folds:
-            t2 = time.perf_counter()
-            report["cross_validation"] = eta_by_cross_validation(cfg, train_paths, episodes, work, device, encoder,
-                                                                 held_eps, curves["real"], dreamed)
-            report["cross_validation"]["wall_s"] = round(time.perf_counter() - t2, 1)
+        if cv is not None:  # the held-out episodes chose nothing: judged at the chosen eta off their curves
+            cv["real_termination_at_chosen_eta"] = termination_at(held_eps, curves["real"], cv["chosen_eta"])
+            report["cross_validation"] = cv
         write_report(report, curves, held_eps, imagined_eps, cfg, work)
         for name in ("reflector_eval.json", "reflector_eval.md", "reflector_curves.png"):
             stage.add_output(work / name, kind="report" if name.endswith(("json", "md")) else "plot")
@@ -153,19 +160,18 @@ def cross_validation_folds(paths: list[Path], folds: int) -> list[list[int]]:
     return [order[k::folds] for k in range(folds)]
 
 
-def eta_by_cross_validation(cfg, paths: list[Path], episodes: list, work: Path, device, encoder,
-                            held_eps, held_curves, dreamed: list | None = None) -> dict:
+def cross_validate_eta(cfg, paths: list[Path], episodes: list, work: Path, device, encoder,
+                       dreamed: list | None = None) -> dict:
     """Choose eta by K-fold cross-validation over the training episodes: K reflectors, each trained
     without one fold (in work/folds/, resumable), score the fold they did not see; eta is the one
-    with the best termination F1 over all those out-of-fold episodes. The held-out test episodes
-    choose nothing: their termination at the chosen eta is read off their already scored curves.
-    `dreamed`: imagined copies of `episodes` (train.with_imagined), trained on with their fold."""
+    with the best termination F1 over all those out-of-fold episodes. `dreamed`: imagined copies
+    of `episodes` (train.with_imagined), trained on with their fold; scoring is on real video."""
     folds = cross_validation_folds(paths, cfg.eta_folds)
     outcomes = {e: [] for e in ETA_SWEEP}
     for k, fold in enumerate(folds):
         keep = set(fold)
         fit_eps = [ep for i, ep in enumerate(episodes) if i not in keep]
-        fit_eps += [ep for i, ep in enumerate(dreamed or []) if i not in keep]  # scored on real video only
+        fit_eps += [ep for i, ep in enumerate(dreamed or []) if i not in keep]
         val_eps = [episodes[i] for i in fold]
         log.info("eta cross-validation: fold %d of %d (%d episodes held out of %d)", k + 1, len(folds),
                  len(val_eps), len(episodes))
@@ -177,13 +183,16 @@ def eta_by_cross_validation(cfg, paths: list[Path], episodes: list, work: Path, 
             for e in ETA_SWEEP:
                 outcomes[e].append(StopOutcome(first_success(ep.success), first_stop(steps, scores, e)))
     sweep = {str(e): termination_metrics(o) for e, o in outcomes.items()}
-    chosen = best_eta({e: m["f1"] for e, m in sweep.items()}, cfg.eta)
-    at_chosen = termination_metrics([StopOutcome(first_success(ep.success), first_stop(steps, scores, chosen))
-                                     for ep, (steps, scores) in zip(held_eps, held_curves)])
     return {"folds": len(folds), "episodes": len(episodes),
             "eta_sweep": {e: {"termination_f1": m["f1"], "episodes": m["episodes"], "false_stops": m["false_stops"],
                               "missed_successes": m["missed_successes"]} for e, m in sweep.items()},
-            "chosen_eta": chosen, "real_termination_at_chosen_eta": at_chosen}
+            "chosen_eta": best_eta({e: m["f1"] for e, m in sweep.items()}, cfg.eta)}
+
+
+def termination_at(episodes, curves, eta: float) -> dict:
+    """Termination metrics of already scored (steps, R) curves at another eta."""
+    return termination_metrics([StopOutcome(first_success(ep.success), first_stop(steps, scores, eta))
+                                for ep, (steps, scores) in zip(episodes, curves)])
 
 
 def train(cfg, model, model_cfg: dict, meta: dict, sampler: PrefixSampler, encoder, work: Path, device) -> list[dict]:

@@ -7,7 +7,7 @@ from hydra.utils import instantiate
 
 from worldenv_core.models.checkpoint import CheckpointError, save_model
 from worldenv_core.models.reflector import (IncrementalScorer, ReflectorStop, check_eta, load_reflector,
-                                            score_prefixes, subsample_indices)
+                                            reflector_eta, score_prefixes, subsample_indices)
 from worldenv_core.models.reflector_data import PrefixSampler, prefix_frames, settled_labels
 
 
@@ -104,6 +104,16 @@ def test_checkpoint_round_trip_and_contract_errors(tmp_path):
     with pytest.raises(CheckpointError, match="'policy' checkpoint, not a reflector"):
         load_reflector(tmp_path / "p")
 
+
+def test_a_stage_stops_at_the_reflectors_own_eta_unless_told_otherwise(tmp_path):
+    model = instantiate(small_config()).eval()
+    save_model(tmp_path / "cv", model, small_config(), {"kind": "reflector", "eta": 0.8, "camera": "agentview"})
+    save_model(tmp_path / "old", model, small_config(), {"kind": "reflector", "camera": "agentview"})
+    assert reflector_eta(tmp_path / "cv", None) == 0.8  # e.g. chosen by its eta cross-validation
+    assert reflector_eta(tmp_path / "cv", 0.3) == 0.3
+    assert reflector_eta(tmp_path / "old", None) == 0.5  # a checkpoint that names none: the paper's
+    with pytest.raises(ValueError, match=r"eta .* must be in \[0, 1\], got 1.5"):
+        reflector_eta(tmp_path / "cv", 1.5)
 
 def test_frozen_hf_tower_trains_only_the_aggregator_and_head(tmp_path):
     """The paper's setting (a frozen pretrained tower, only the head learns), on a tiny CLIP

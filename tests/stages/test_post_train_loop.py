@@ -42,7 +42,7 @@ def trained(demo_experiment):
 def test_loop_records_a_post_trained_policy_with_its_real_success_curve(trained):
     exp, metrics = trained
     m = Manifest(exp)
-    rec = m.latest("post_train_loop", task="tiny", eta=0.5, n_rollouts=2)
+    rec = m.latest("post_train_loop", task="tiny", eta=0.5, n_rollouts=2)  # rl.eta null: the reflector's own 0.5
     used = {m.get(i).stage for i in rec.inputs}
     assert {"train_policy", "train_worldsim", "train_reflector", "collect"} <= used
     files = {p.name: p for p in m.resolve(rec)}

@@ -185,7 +185,7 @@ class PolicyEvalJob:
     #                   "all": run max_steps with the reflector watching, rows for all three
     video_ids: tuple[int, ...] = ()
     reflector_path: str | None = None
-    eta: float = 0.5
+    eta: float | None = None  # the reflector's threshold (termination reflector / all)
 
 
 _REFLECTORS: dict = {}

@@ -136,6 +136,14 @@ def check_eta(eta: float) -> float:
     return float(eta)
 
 
+def reflector_eta(path, eta: float | None) -> float:
+    """The threshold a stage stops at: `eta` when given, else the one the reflector checkpoint
+    carries (its train_reflector eta, or the one its eta cross-validation chose)."""
+    from worldenv_core.models.checkpoint import read_config
+
+    return check_eta(read_config(path)["meta"].get("eta", 0.5) if eta is None else eta)
+
+
 @torch.no_grad()
 def score_prefixes(model: Reflector, frames: torch.Tensor, instruction: torch.Tensor, steps) -> torch.Tensor:
     """R at each of `steps` (increasing frame indices) of one video (T+1, 3, H, W), seeing only
