@@ -171,16 +171,24 @@ def _expert_eval(cfg: DictConfig, task_ids: list[int], run_dir: Path, stage: Sta
 
 
 def _export_lerobot(cfg: DictConfig, stage: StageRun) -> str:
-    """Export this run's episodes as a LeRobotDataset v3 (rebuilt whole: exports are cheap next
-    to collection, and a partial export must never look complete)."""
+    """Export this run's episodes as a LeRobotDataset v3, rebuilt whole (a partial export must
+    never look complete) unless the export on disk was made from exactly these episodes: a
+    re-run of the pipeline that collected nothing new does not spend minutes exporting again."""
     from worldenv_core.data.lerobot_io import export_lerobot
 
     root = episode_dir(cfg) / "lerobot"
-    shutil.rmtree(root, ignore_errors=True)
-    paths = stage.manifest.resolve(stage.record, kind="episodes", verify=False)
-    export_lerobot(sorted(paths), root, repo_id=f"worldenv/{cfg.task.name}_{cfg.source}")
+    repo_id = f"worldenv/{cfg.task.name}_{cfg.source}"
+    stamp = {"repo_id": repo_id, "episodes": sorted(a.sha256 for a in stage.record.files("episodes"))}
+    made_from = root / "worldenv_export.json"  # written last: present only on a complete export
+    if made_from.exists() and json.loads(made_from.read_text()) == stamp:
+        log.info("LeRobotDataset v3 export %s is up to date (%d episodes)", root, len(stamp["episodes"]))
+    else:
+        shutil.rmtree(root, ignore_errors=True)
+        paths = stage.manifest.resolve(stage.record, kind="episodes", verify=False)
+        export_lerobot(sorted(paths), root, repo_id=repo_id)
+        made_from.write_text(json.dumps(stamp))
+        log.info("LeRobotDataset v3 export: %s (%d episodes)", root, len(paths))
     stage.add_output(root / "meta" / "info.json", kind="lerobot")
-    log.info("LeRobotDataset v3 export: %s (%d episodes)", root, len(paths))
     return str(root)
 
 

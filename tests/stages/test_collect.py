@@ -97,6 +97,11 @@ def test_killed_collection_resumes_and_reproduces_the_episodes(tmp_path):
     assert record.metrics["collection"]["kept_frames_per_s"] > 0
     assert (out_dir / "lerobot" / "meta" / "info.json").exists()
     assert record.files("lerobot"), "the LeRobot export is recorded in the manifest"
+    info = out_dir / "lerobot" / "meta" / "info.json"
+    built = info.stat().st_mtime_ns
+    run(cfg)  # nothing new to collect: the export, made from these very episodes, is not rebuilt
+    assert info.stat().st_mtime_ns == built
+    assert Manifest(tmp_path / "exp").latest("collect", task="tiny", source="expert").files("lerobot")
 
     # Same job, fresh file: bit-identical to what the killed run wrote.
     ref = tmp_path / "ref.mcap"
