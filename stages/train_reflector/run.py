@@ -155,7 +155,8 @@ def cross_validation_folds(paths: list[Path], folds: int) -> list[list[int]]:
     """K folds of the training episodes (indices), every K-th in sorted path order, so each fold
     mixes tasks and sources like the whole; a fold must leave something to train on."""
     if folds > len(paths) or folds < 2:
-        raise ConfigError(f"eta_folds={folds} needs 2 <= folds <= the {len(paths)} training episodes")
+        raise ConfigError(f"eta_folds={folds} needs 2 <= folds <= the {len(paths)} training episodes "
+                          f"(eta_folds=0 keeps the configured eta)")
     order = sorted(range(len(paths)), key=lambda i: paths[i])
     return [order[k::folds] for k in range(folds)]
 

@@ -19,7 +19,7 @@ LOOP = ["expert_only=true", "rl.iterations=2", "rl.contexts_per_iteration=1", "r
 
 REFLECTOR = ["expert_only=true", "train.steps=2", "train.batch_size=2", "holdout_every=2", "reflector.d_model=16",
              "reflector.layers=1", "reflector.heads=2", "reflector.frame_encoder.widths=[8,16]",
-             "reflector.frame_encoder.keypoints=4", "plots=1", "imagined.enabled=false"]
+             "reflector.frame_encoder.keypoints=4", "plots=1", "imagined.enabled=false", "eta_folds=0"]
 
 
 def cfg(stage, exp, *overrides):

@@ -16,7 +16,7 @@ from worldenv_core.stage import ConfigError, compose_config
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
 SMALL = ["train.steps=6", "train.batch_size=4", "train.log_every=2", "train.checkpoint_every=3", "holdout_every=2",
          "reflector.d_model=16", "reflector.layers=1", "reflector.heads=2", "reflector.frame_encoder.widths=[8,16]",
-         "reflector.frame_encoder.keypoints=4", "plots=1", "train.mine.every=3"]
+         "reflector.frame_encoder.keypoints=4", "plots=1", "train.mine.every=3", "eta_folds=0"]
 
 
 def cfg(stage, exp, *overrides):
@@ -143,7 +143,7 @@ def test_eta_cross_validation_scores_every_training_episode_out_of_fold_and_resu
     eps = synthetic_episodes(0, 8)
     paths = [Path(f"c/task00/e{i}.mcap") for i in range(8)]
     c = compose_config("train_reflector", ["+task=tiny", "scale=tiny", "eta_folds=2", "frame_stride=4",
-                                           *[o for o in SMALL if not o.startswith(("holdout", "plots"))]])
+                                           *[o for o in SMALL if not o.startswith(("holdout", "plots", "eta_folds"))]])
     out = cross_validate_eta(c, paths, eps, tmp_path, "cpu", InstructionEncoder())
     assert out["folds"] == 2 and out["episodes"] == 8 and out["chosen_eta"] in ETA_SWEEP
     assert all(m["episodes"] == 8 for m in out["eta_sweep"].values())  # every training episode once, out of fold
