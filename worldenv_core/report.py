@@ -172,7 +172,8 @@ def write_report(experiment_dir: str | Path, task: str) -> Path:
             train = r.config.get("train") or {}
             mine = train.get("mine") or {}
             training = ", ".join([f"{train.get('steps')} steps", f"label delay {train.get('label_delay', 0)}",
-                                  f"mining every {mine['every']} > {mine['threshold']}" if mine.get("every") else "no mining"])
+                                  f"mining every {mine['every']} > {mine['threshold']}" if mine.get("every") else "no mining"]
+                                 + (["+ imagined replays"] if train.get("with_imagined") else []))
             ckpt = r.files("checkpoint")
             run = f"`{r.id}` ({_short(str(Path(ckpt[0].path).parent))})" if ckpt else f"`{r.id}`"  # the name evaluations give above
             for kind in ("real", "imagined"):
@@ -180,6 +181,10 @@ def write_report(experiment_dir: str | Path, task: str) -> Path:
                     p, t = acc[kind]["per_step"], acc[kind]["termination"]["all"]
                     lines.append(f"| {run} | {r.tags.get('data')} | {training} | {acc['eta']} | {acc['held_out_episodes']} "
                                  f"| {kind} | {p['accuracy']:.3f} | {p['f1']:.3f} | {p['auroc']:.3f} | {t['f1']:.3f} |")
+            if "cross_validation" in acc:  # the eta the checkpoint carries, chosen without the held-out episodes
+                cv = acc["cross_validation"]
+                lines.append(f"| {run} | {r.tags.get('data')} | {training} | {cv['chosen_eta']} ({cv['folds']}-fold CV) "
+                             f"| {acc['held_out_episodes']} | real | | | | {cv['real_termination_at_chosen_eta']['f1']:.3f} |")
 
     lines += ["", "## Wall time per stage (newest run of each)", "", "| stage | tags | wall s |", "|---|---|---|"]
     seen = {}
