@@ -71,3 +71,19 @@ def test_a_stage_records_the_artefacts_it_used(tmp_path):
     rec = m.latest("train_policy", task="goal")
     assert rec.inputs == [demos.id]
     assert [a.sha256 for a in rec.input_files] == [a.sha256 for a in demos.outputs]
+
+
+def test_a_rerun_that_hands_on_the_same_files_names_the_same_work(tmp_path):
+    """Work dirs are named after their inputs; a re-run of an upstream stage that changed nothing
+    is a new record, but a consumer's work_inputs() names the first record with those files."""
+    m = Manifest(tmp_path / "exp")
+    first, _ = _stage(m, tmp_path, "collect", {"task": "goal"}, b"demos")
+    other, _ = _stage(m, tmp_path, "collect", {"task": "goal"}, b"other demos")
+    rerun, _ = _stage(m, tmp_path, "collect", {"task": "goal"}, b"demos")  # same content, new record
+    names = {}
+    for upstream in (first, other, rerun):
+        with StageRun(m, "train_policy", {"task": "goal"}, {}) as run:
+            run.use(upstream, kind="episodes")
+            names[upstream.id] = run.work_inputs()
+        assert run.record.inputs == [upstream.id]  # the record still names what it read
+    assert names[rerun.id] == names[first.id] == [first.id] and names[other.id] == [other.id]

@@ -211,6 +211,22 @@ class StageRun:
         self.record.input_files.extend(record.files(kind))
         return paths
 
+    def work_inputs(self) -> list[str]:
+        """The records this run read, each named by the first record of its stage in the manifest
+        whose outputs hold every file (by content) this run used from it: a re-run of an earlier
+        stage that produced the same files is a new record, but what it hands on is the same, so
+        the work dirs named after it (`stage.work_dir`) stay the ones already trained."""
+        used = {a.sha256 for a in self.record.input_files}
+        records = self.manifest.records()
+        out = []
+        for rid in self.inputs:
+            rec = next((r for r in records if r.id == rid), None)
+            mine = {a.sha256 for a in rec.outputs} & used if rec else set()
+            first = next((r for r in records if rec and r.stage == rec.stage and mine <= {a.sha256 for a in r.outputs}),
+                         None)
+            out.append(first.id if first and mine else rid)
+        return sorted(out)
+
     def add_output(self, path, kind: str = "") -> Artefact:
         art = self.manifest.artefact(path, kind)
         self.record.outputs.append(art)

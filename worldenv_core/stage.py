@@ -125,8 +125,15 @@ def resolve_policy(cfg: DictConfig, stage_run) -> str:
     return resolve_checkpoint(stage_run, None if ref in POLICY_SOURCES else ref, producer, cfg.task.name, cfg.scale.name)
 
 
+# Scale settings that choose how a result is evaluated, not what is trained (each stage's own
+# copy, e.g. train_reflector's eta_folds, is left out of its work-dir name as well).
+EVALUATION_ONLY_SCALE_KEYS = ("reflector_eta_folds",)
+
+
 def work_dir(experiment_dir, stage: str, config: dict, inputs: list[str]) -> Path:
     """Where a training stage keeps the checkpoints it resumes from, named by its settings and by
     the manifest records it read: rerun on other data (a newer collection, another policy) it
     starts fresh instead of resuming, or reusing, a run trained on something else."""
+    if isinstance(config.get("scale"), dict):
+        config = {**config, "scale": {k: v for k, v in config["scale"].items() if k not in EVALUATION_ONLY_SCALE_KEYS}}
     return Path(experiment_dir) / stage / config_hash({**config, "inputs": sorted(inputs)})

@@ -141,7 +141,7 @@ def run(cfg: DictConfig) -> dict:
         # The work dir (what resume finds) is named by what defines the training and by its inputs,
         # not by how it is evaluated or shown: changing eval.* or progress continues the same run.
         work = work_dir(cfg.experiment_dir, "post_train_loop",
-                        {k: v for k, v in config.items() if k not in ("eval", "progress")}, stage.inputs)
+                        {k: v for k, v in config.items() if k not in ("eval", "progress")}, stage.work_inputs())
         policy_cfg = read_config(policy_path)["model"]
         optimizer = torch.optim.Adam(policy_param_groups(policy, rl.lr_backbone, rl.lr_heads))
         ckpts = Checkpoints(work)

@@ -68,7 +68,7 @@ def run(cfg: DictConfig) -> dict:
         demos = manifest.get(cfg.demos) if cfg.demos else manifest.latest("collect", task=task.name,
                                                                             scale=cfg.scale.name, source="expert")
         paths = select_demos(stage.use(demos, kind="episodes"), cfg.demos_per_task, list(task.task_ids or []) or None)
-        work = work_dir(cfg.experiment_dir, "train_policy", config, stage.inputs)
+        work = work_dir(cfg.experiment_dir, "train_policy", config, stage.work_inputs())
         data = EpisodeDataset(paths, cameras=list(task.cameras), mode="chunk", chunk=task.chunk, future_frames=False)
         stats = data.compute_stats()
         model_cfg = OmegaConf.to_container(cfg.policy, resolve=True)
