@@ -168,7 +168,7 @@ def cross_validate_eta(cfg, paths: list[Path], episodes: list, work: Path, devic
     with the best termination F1 over all those out-of-fold episodes. `dreamed`: imagined copies
     of `episodes` (train.with_imagined), trained on with their fold; scoring is on real video."""
     folds = cross_validation_folds(paths, cfg.eta_folds)
-    outcomes = {e: [] for e in ETA_SWEEP}
+    scored, curves = [], []  # every training episode once, by the reflector that did not train on it
     for k, fold in enumerate(folds):
         keep = set(fold)
         fit_eps = [ep for i, ep in enumerate(episodes) if i not in keep]
@@ -178,12 +178,11 @@ def cross_validate_eta(cfg, paths: list[Path], episodes: list, work: Path, devic
                  len(val_eps), len(episodes))
         model, *_ = fit(cfg, fit_eps, work / "folds" / f"{k + 1}-of-{len(folds)}", device, encoder,
                         {"held_out": [episode_key(paths[i]) for i in fold]})
-        _, curves = evaluate_videos(model, encoder, val_eps, [ep.video(cfg.camera) for ep in val_eps],
-                                    cfg.frame_stride, cfg.eta)
-        for ep, (steps, scores) in zip(val_eps, curves):
-            for e in ETA_SWEEP:
-                outcomes[e].append(StopOutcome(first_success(ep.success), first_stop(steps, scores, e)))
-    sweep = {str(e): termination_metrics(o) for e, o in outcomes.items()}
+        _, fold_curves = evaluate_videos(model, encoder, val_eps, [ep.video(cfg.camera) for ep in val_eps],
+                                         cfg.frame_stride, cfg.eta)
+        scored += val_eps
+        curves += fold_curves
+    sweep = {str(e): termination_at(scored, curves, e) for e in ETA_SWEEP}
     return {"folds": len(folds), "episodes": len(episodes),
             "eta_sweep": {e: {"termination_f1": m["f1"], "episodes": m["episodes"], "false_stops": m["false_stops"],
                               "missed_successes": m["missed_successes"]} for e, m in sweep.items()},
