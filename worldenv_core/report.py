@@ -135,6 +135,69 @@ def post_training_table(manifest: Manifest, runs: list[StageRecord], out: Path) 
     return lines
 
 
+def _loop_of(record: StageRecord, by_id: dict) -> StageRecord | None:
+    return next((by_id[i] for i in record.inputs if i in by_id and by_id[i].stage == "post_train_loop"), None)
+
+
+def _reward_kind(loop: StageRecord, by_id: dict) -> str:
+    """Trained reward head (our reflector) or a prompted VLM's yes/no (the paper's "w/o reward head")."""
+    refl = next((by_id[i] for i in loop.inputs if i in by_id and by_id[i].stage == "train_reflector"), None)
+    target = str(((refl.config if refl else {}).get("reflector") or {}).get("_target_", ""))
+    return "VLM yes/no" if "VLMYesNo" in target else "trained head"
+
+
+def ablation_table(manifest: Manifest, task: str) -> list[str]:
+    """The paper's Table 2 from what was run: every evaluated policy (SFT and each post-trained
+    one, by checkpoint), whether its LOOP's world model saw the extra policy-rollout data, which
+    reward it had, and the imagined reward it optimised; each row on the init states it was
+    evaluated on, so only rows with the same count compare."""
+    by_id = {r.id: r for r in manifest.records()}
+    rows: dict[tuple, dict] = {}  # (checkpoint work dir, init states) -> {termination: success}, newest wins
+    loops: dict[tuple, StageRecord | None] = {}
+    for ev in manifest.find("evaluate", task=task):
+        summary = _report_json(manifest, ev, "results.json")
+        loop = _loop_of(ev, by_id)
+        if not summary or (loop is None and ev.tags.get("policy") != "sft"):
+            continue
+        key = (_short(summary["policy"]), summary["init_states"])
+        rows.setdefault(key, {})[summary["termination"]] = summary["success_rate"]
+        loops[key] = loop
+    if not any(loops.values()):
+        return []
+    lines = ["| policy | extra data for the world model | reward | imagined reward, success (SFT -> last) "
+             "| init states per task | " + " | ".join(TERMINATIONS) + " |", "|---|---|---|---|---|---|---|---|"]
+    for key in sorted(rows, key=lambda k: (k[1], loops[k] is not None)):
+        loop, cells = loops[key], rows[key]
+        data = _input_tags(manifest, loop, "train_worldsim").get("data") if loop else None
+        extra = {"expert+policy": "yes", "expert": "no (expert demos only)"}.get(data, "") if loop else ""
+        reward = f"{_reward_kind(loop, by_id)}, eta {loop.tags.get('eta')}" if loop else ""
+        lines.append(f"| {'SFT' if loop is None else 'post-trained'} `{key[0]}` | {extra} | {reward} "
+                     f"| {_fixed(loop) if loop else ''} | {key[1]} | "
+                     + " | ".join(f"{100 * cells[t]:.1f} %" if t in cells else "" for t in TERMINATIONS) + " |")
+    return lines
+
+
+def video_section(manifest: Manifest, task: str, out: Path, per_policy: int = 3) -> list[str]:
+    """A few episodes of the newest evaluation of each policy under reflector termination (else
+    oracle), successes first, copied beside the report so the folder stands on its own."""
+    import shutil
+
+    lines = []
+    for policy in POLICIES:
+        evals = manifest.find("evaluate", task=task, policy=policy)
+        rec = _newest(evals, termination="reflector") or _newest(evals, termination="oracle")
+        videos = sorted(rec.files("video"), key=lambda a: ("failure" in a.path, a.path)) if rec else []
+        for art in videos[:per_policy]:
+            src = manifest.root / art.path
+            if not src.exists():
+                continue
+            dst = out / "videos" / f"{policy}_{rec.tags['termination']}_{src.name}"
+            dst.parent.mkdir(exist_ok=True)
+            shutil.copyfile(src, dst)
+            lines.append(f"![{policy}, {rec.tags['termination']} termination: {src.stem}](videos/{dst.name})")
+    return lines
+
+
 def write_report(experiment_dir: str | Path, task: str) -> Path:
     manifest = Manifest(experiment_dir)
     out = manifest.root / "report"
@@ -146,6 +209,12 @@ def write_report(experiment_dir: str | Path, task: str) -> Path:
         _plot_success(cells, out / "success.png")
         lines += ["", "![success](success.png)"]
 
+    videos = video_section(manifest, task, out)
+    if videos:
+        lines += ["", "Episodes (first init states of each task; GIFs):", ""] + videos
+    ablations = ablation_table(manifest, task)
+    if ablations:
+        lines += ["", "## Ablations (the paper's Table 2, as far as run)", ""] + ablations
     loop = manifest.find("post_train_loop", task=task)
     if loop:
         lines += ["", "## Post-training (LOOP in imagination)", ""] + post_training_table(manifest, loop[-6:], out)

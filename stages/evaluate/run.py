@@ -148,8 +148,9 @@ def markdown(summary: dict, suite: str) -> str:
     lines.append(f"| all | | **{100 * summary['success_rate']:.1f}%** | {100 * summary['ever_succeeded_rate']:.1f}% | |")
     if "reflector_termination" in summary:
         t = summary["reflector_termination"]
+        early = t["false_stops_before_success"]
         lines += ["", f"Reflector stops (eta = {summary['eta']}): {t['correct_stops']} at or after the oracle's success "
                   f"(median {t['timing_error_median']:.0f} steps late), {t['false_stops']} false stops "
-                  f"({t['false_stop_before_success_rate']:.2f} of the successes stopped early), {t['missed_successes']} "
-                  f"successes never stopped; termination F1 {t['f1']:.3f}."]
+                  f"({early} before a success that came later, {t['false_stops'] - early} in failures), "
+                  f"{t['missed_successes']} successes never stopped; termination F1 {t['f1']:.3f}."]
     return "\n".join(lines) + "\n"

@@ -36,6 +36,7 @@ def test_termination_metrics_by_hand():
     assert [o.kind for o in outcomes] == ["correct", "correct", "false_stop", "false_stop", "missed", "no_stop"]
     m = termination_metrics(outcomes)
     assert (m["correct_stops"], m["false_stops"], m["missed_successes"], m["no_stop_failures"]) == (2, 2, 1, 1)
+    assert m["false_stops_before_success"] == 1
     assert math.isclose(m["precision"], 0.5) and math.isclose(m["recall"], 2 / 3)
     assert math.isclose(m["f1"], 4 / 7)
     assert math.isclose(m["false_stop_before_success_rate"], 1 / 4)  # 4 successful episodes

@@ -100,6 +100,13 @@ def test_evaluate_the_post_trained_policy_by_name(trained):
     section = report.split("## Post-training (LOOP in imagination)")[1].split("\n## ")[0]
     assert "| 0.5 | 2 |" in section and " -> " in section  # imagined reward first -> last iterations
     assert "post_training.png" in section and (Path(exp) / "report" / "post_training.png").exists()
+    # Table 2: the post-trained policy's world model saw only the expert demos (expert_only above)
+    ablation = report.split("## Ablations")[1].split("\n## ")[0]
+    row = next(line for line in ablation.splitlines() if line.startswith("| post-trained"))
+    assert "| no (expert demos only) | trained head, eta 0.5 |" in row and row.rstrip().endswith("|  |  |")
+    assert f"`post_train_loop/{Path(rec.files('checkpoint')[0].path).parts[-3]}`" in row  # which checkpoint it was
+    gifs = sorted((Path(exp) / "report" / "videos").glob("post_trained_oracle_task*.gif"))
+    assert len(gifs) == 1 and f"(videos/{gifs[0].name})" in report  # the episode's GIF, beside the report
 
 
 def test_reflector_also_trains_on_the_world_simulators_replays_of_its_episodes(trained):
