@@ -100,10 +100,17 @@ def plot_history(history: list[dict], path: str | Path, title: str = "") -> Path
     import matplotlib.pyplot as plt
 
     keys = [k for k in dict.fromkeys(k for h in history for k in h) if k != "step"]  # entries may differ
-    fig, axes = plt.subplots(1, max(1, len(keys)), figsize=(4 * max(1, len(keys)), 3), squeeze=False)
-    for ax, k in zip(axes[0], keys):
+    cols = min(4, max(1, len(keys)))  # a grid, not one long strip: readable at page width
+    rows = -(-max(1, len(keys)) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 2.8 * rows), squeeze=False)
+    for ax in axes.flat[len(keys):]:
+        ax.axis("off")
+    for ax, k in zip(axes.flat, keys):
         pts = [(h["step"], h[k]) for h in history if k in h]
         ax.plot(*zip(*pts), marker="o" if len(pts) < 20 else None)
+        if "success" in k and pts and pts[0][0] == 0:  # step 0 is the starting (SFT) policy: keep it in view
+            ax.axhline(pts[0][1], color="grey", linestyle="--", linewidth=1, label="start (SFT)")
+            ax.legend(fontsize=7)
         ax.set_title(k)
         ax.set_xlabel("step")
     fig.suptitle(title)
