@@ -1,6 +1,9 @@
-"""Image metrics for world-model fidelity, batched in torch (images in [0, 1], (..., 3, H, W))."""
+"""Image metrics for world-model fidelity, batched in torch (images in [0, 1], (..., 3, H, W)),
+classification metrics for the reflector, and the paired test that compares two policies."""
 
 from __future__ import annotations
+
+import math
 
 import torch
 from torch.nn import functional as F
@@ -70,3 +73,16 @@ def binary_metrics(scores, labels, threshold: float) -> dict:
     return {"accuracy": (tp + tn) / max(1, len(labels)), "precision": precision, "recall": recall,
             "f1": 2 * tp / (2 * tp + fp + fn) if tp + fp + fn else float("nan"),
             "auroc": auroc(scores, labels), "tp": tp, "fp": fp, "fn": fn, "tn": tn, "n": int(len(labels))}
+
+
+def paired_success_test(a: dict, b: dict) -> dict:
+    """Two policies' successes on the same episodes ({episode key: bool}, e.g. (task, init state)):
+    how many only `a` solved, how many only `b` solved, and the exact two-sided McNemar p-value
+    (a binomial test on those discordant episodes). Episodes both solve or both fail carry no
+    information about which policy is better, so this is far sharper than comparing two rates."""
+    keys = sorted(set(a) & set(b))
+    only_a = sum(bool(a[k]) and not b[k] for k in keys)
+    only_b = sum(bool(b[k]) and not a[k] for k in keys)
+    n, k = only_a + only_b, min(only_a, only_b)
+    p = min(1.0, 2 * sum(math.comb(n, i) for i in range(k + 1)) / 2 ** n) if n else 1.0
+    return {"episodes": len(keys), "only_a": only_a, "only_b": only_b, "p_value": p}

@@ -62,6 +62,7 @@ def success_table(manifest: Manifest, task: str) -> tuple[list[str], dict]:
     lines.append("| **all** | " + " | ".join(f"**{100 * cells[k]['success_rate']:.1f} %**" for k in cols) + " |")
     n = {cells[k]["init_states"] for k in cols}
     lines += ["", f"(first {'/'.join(map(str, sorted(n)))} benchmark init states per task)"]
+    lines += _paired_lines(manifest, evals)
     for policy in POLICIES:
         refl = cells.get((policy, "reflector"))
         if refl and "reflector_termination" in refl:
@@ -70,6 +71,24 @@ def success_table(manifest: Manifest, task: str) -> tuple[list[str], dict]:
                       f"termination F1 {t['f1']:.3f}, median timing error {t['timing_error_median']:.0f} steps, "
                       f"{t['false_stops']} false stops, {t['missed_successes']} missed successes."]
     return lines, cells
+
+
+def _paired_lines(manifest: Manifest, evals: list[StageRecord]) -> list[str]:
+    """SFT vs post-trained on the same episodes, per termination: which episodes only one of them
+    solved, and the exact McNemar p-value (is the difference more than chance?)."""
+    from worldenv_core.metrics import paired_success_test
+
+    lines = []
+    for term in TERMINATIONS:
+        eps = [_report_json(manifest, _newest(evals, policy=p, termination=term), "episodes.json") for p in POLICIES]
+        if not all(eps):
+            continue
+        sft, post = ({(e["task_id"], e["init_state"]): e["success"] for e in es} for es in eps)
+        t = paired_success_test(sft, post)
+        if t["episodes"]:
+            lines.append(f"{term}, paired over the {t['episodes']} episodes both policies ran: {t['only_a']} solved "
+                         f"by SFT only, {t['only_b']} by the post-trained policy only; exact McNemar p = {t['p_value']:.3f}.")
+    return [""] + lines if lines else []
 
 
 def _short(path: str) -> str:
