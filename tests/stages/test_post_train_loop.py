@@ -103,7 +103,7 @@ def test_evaluate_the_post_trained_policy_by_name(trained):
     # Table 2: the post-trained policy's world model saw only the expert demos (expert_only above)
     ablation = report.split("## Ablations")[1].split("\n## ")[0]
     row = next(line for line in ablation.splitlines() if line.startswith("| post-trained"))
-    assert "| no (expert demos only) | trained head, eta 0.5 |" in row and row.rstrip().endswith("|  |  |")
+    assert f"| no (expert demos only) | trained head, eta {rec.tags['eta']} |" in row and row.rstrip().endswith("|  |  |")
     assert f"`post_train_loop/{Path(rec.files('checkpoint')[0].path).parts[-3]}`" in row  # which checkpoint it was
     gifs = sorted((Path(exp) / "report" / "videos").glob("post_trained_oracle_task*.gif"))
     assert len(gifs) == 1 and f"(videos/{gifs[0].name})" in report  # the episode's GIF, beside the report
