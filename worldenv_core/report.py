@@ -177,7 +177,7 @@ def _reward_kind(loop: StageRecord, by_id: dict) -> str:
     return "VLM yes/no" if "VLMYesNo" in target else "trained head"
 
 
-def ablation_table(manifest: Manifest, task: str) -> list[str]:
+def ablation_table(manifest: Manifest, task: str, limit: int = 8) -> list[str]:
     """The paper's Table 2 from what was run: every evaluated policy (SFT and each post-trained
     one, by checkpoint), whether its LOOP's world model saw the extra policy-rollout data, which
     reward it had, and the imagined reward it optimised; each row on the init states it was
@@ -197,7 +197,8 @@ def ablation_table(manifest: Manifest, task: str) -> list[str]:
         return []
     lines = ["| policy | extra data for the world model | reward | imagined reward, success (SFT -> last) "
              "| init states per task | " + " | ".join(TERMINATIONS) + " |", "|---|---|---|---|---|---|---|---|"]
-    for key in sorted(rows, key=lambda k: (k[1], loops[k] is not None)):
+    newest = list(rows)[-limit:]  # evaluated most recently; keys keep first-evaluation order
+    for key in sorted(newest, key=lambda k: (k[1], loops[k] is not None)):
         loop, cells = loops[key], rows[key]
         data = _input_tags(manifest, loop, "train_worldsim").get("data") if loop else None
         extra = {"expert+policy": "yes", "expert": "no (expert demos only)"}.get(data, "") if loop else ""
