@@ -97,9 +97,14 @@ def _short(path: str) -> str:
     return "/".join(parts[-3:-1]) if len(parts) >= 3 else str(path)
 
 
-def _input_tags(manifest: Manifest, record: StageRecord, stage: str) -> dict:
-    by_id = {r.id: r for r in manifest.records()}
-    return next((by_id[i].tags for i in record.inputs if i in by_id and by_id[i].stage == stage), {})
+def _input(record: StageRecord, stage: str, by_id: dict) -> StageRecord | None:
+    """The record of `stage` that `record` read (by_id: the manifest's records by id, read once)."""
+    return next((by_id[i] for i in record.inputs if i in by_id and by_id[i].stage == stage), None)
+
+
+def _input_tags(record: StageRecord, stage: str, by_id: dict) -> dict:
+    found = _input(record, stage, by_id)
+    return found.tags if found else {}
 
 
 def _history(manifest: Manifest, record: StageRecord) -> list[dict]:
@@ -137,12 +142,13 @@ def post_training_table(manifest: Manifest, runs: list[StageRecord], out: Path) 
              "| reflector success rate | episode length | fixed contexts: imagined reward, success (SFT -> last) "
              "| real success by iteration | wall s |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
+    by_id = {r.id: r for r in manifest.records()}
     for r in runs:
         h = _history(manifest, r)
         curve = ", ".join(f"{k}: {100 * v:.0f} %" for k, v in r.metrics.get("real_success", {}).items()) or "not run"
         lines.append(f"| {r.tags.get('eta')} | {r.tags.get('n_rollouts')} | {r.metrics.get('iterations')} "
-                     f"| {_input_tags(manifest, r, 'train_worldsim').get('data', '?')} "
-                     f"| {_input_tags(manifest, r, 'train_reflector').get('data', '?')} | {_span(h, 'mean_reward')} "
+                     f"| {_input_tags(r, 'train_worldsim', by_id).get('data', '?')} "
+                     f"| {_input_tags(r, 'train_reflector', by_id).get('data', '?')} | {_span(h, 'mean_reward')} "
                      f"| {_span(h, 'reflector_success_rate')} | {_span(h, 'episode_length')} | {_fixed(r)} | {curve} "
                      f"| {r.wall_time_s:.0f} |")
     # The paper's Figure 3 needs the real success curve: the newest run that evaluated in the loop.
@@ -166,13 +172,9 @@ def _producer(record: StageRecord, records: list[StageRecord]) -> StageRecord:
                  and made <= {a.sha256 for a in r.outputs}), record)
 
 
-def _loop_of(record: StageRecord, by_id: dict) -> StageRecord | None:
-    return next((by_id[i] for i in record.inputs if i in by_id and by_id[i].stage == "post_train_loop"), None)
-
-
 def _reward_kind(loop: StageRecord, by_id: dict) -> str:
     """Trained reward head (our reflector) or a prompted VLM's yes/no (the paper's "w/o reward head")."""
-    refl = next((by_id[i] for i in loop.inputs if i in by_id and by_id[i].stage == "train_reflector"), None)
+    refl = _input(loop, "train_reflector", by_id)
     target = str(((refl.config if refl else {}).get("reflector") or {}).get("_target_", ""))
     return "VLM yes/no" if "VLMYesNo" in target else "trained head"
 
@@ -187,7 +189,7 @@ def ablation_table(manifest: Manifest, task: str, limit: int = 8) -> list[str]:
     loops: dict[tuple, StageRecord | None] = {}
     for ev in manifest.find("evaluate", task=task):
         summary = _report_json(manifest, ev, "results.json")
-        loop = _loop_of(ev, by_id)
+        loop = _input(ev, "post_train_loop", by_id)
         if not summary or (loop is None and ev.tags.get("policy") != "sft"):
             continue
         key = (_short(summary["policy"]), summary["init_states"])
@@ -200,8 +202,8 @@ def ablation_table(manifest: Manifest, task: str, limit: int = 8) -> list[str]:
     newest = list(rows)[-limit:]  # evaluated most recently; keys keep first-evaluation order
     for key in sorted(newest, key=lambda k: (k[1], loops[k] is not None)):
         loop, cells = loops[key], rows[key]
-        data = _input_tags(manifest, loop, "train_worldsim").get("data") if loop else None
-        extra = {"expert+policy": "yes", "expert": "no (expert demos only)"}.get(data, "") if loop else ""
+        data = _input_tags(loop, "train_worldsim", by_id).get("data") if loop else None
+        extra = {"expert+policy": "yes", "expert": "no (expert demos only)"}.get(data, "")
         reward = f"{_reward_kind(loop, by_id)}, eta {loop.tags.get('eta')}" if loop else ""
         lines.append(f"| {'SFT' if loop is None else 'post-trained'} `{key[0]}` | {extra} | {reward} "
                      f"| {_fixed(loop) if loop else ''} | {key[1]} | "

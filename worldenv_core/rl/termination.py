@@ -93,7 +93,8 @@ def termination_metrics(outcomes: list[StopOutcome]) -> dict:
     timing = [o.t_stop - o.t_success for o in outcomes if o.kind == "correct"]
     return {
         "episodes": len(outcomes), "successful_episodes": n_success,
-        "correct_stops": tp, "false_stops": fp, "false_stops_before_success": len(early), "missed_successes": fn, "no_stop_failures": kinds.count("no_stop"),
+        "correct_stops": tp, "false_stops": fp, "false_stops_before_success": len(early), "missed_successes": fn,
+        "no_stop_failures": kinds.count("no_stop"),
         "precision": tp / (tp + fp) if tp + fp else float("nan"),
         "recall": tp / (tp + fn) if tp + fn else float("nan"),
         "f1": 2 * tp / (2 * tp + fp + fn) if tp + fp + fn else float("nan"),
