@@ -12,7 +12,7 @@ export MUJOCO_GL ?= egl
 export HF_HUB_OFFLINE := 1
 export TOKENIZERS_PARALLELISM := false
 
-.PHONY: setup test test-fast smoke pipeline bench expert-table clean
+.PHONY: setup test test-fast smoke pipeline bench expert-table tensorboard clean
 
 setup: $(STAMP)
 
@@ -26,6 +26,8 @@ $(STAMP): pyproject.toml
 	fi
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e '.[dev]'
+	# Two distributions write `cv2`; the headless one (pinned in pyproject.toml) is installed last to win.
+	$(PY) -m pip install -q --force-reinstall --no-deps "$$(grep -o 'opencv-python-headless==[0-9.]*' pyproject.toml)"
 	$(PY) -m pip check
 	touch $(STAMP)
 
@@ -60,6 +62,10 @@ pipeline: setup
 # The same pipeline on the tiny task and scale: minutes, proves the plumbing.
 smoke:
 	$(MAKE) pipeline TASK=tiny SCALE=tiny EXP=outputs/smoke
+
+# Training curves of every run of an experiment (TensorBoard event files in each run's work dir).
+tensorboard: setup
+	$(VENV)/bin/tensorboard --logdir $(EXP) --port $${PORT:-6006}
 
 bench: setup
 	$(PY) -m worldenv_core.bench

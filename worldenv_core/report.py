@@ -22,6 +22,12 @@ TERMINATIONS = ("oracle", "fixed", "reflector")
 POLICIES = ("sft", "post_trained")
 
 
+def own_suite_evaluations(manifest: Manifest, task: str, **tags) -> list[StageRecord]:
+    """The task's evaluations on its own suite (those on another suite carry an `eval_suite` tag
+    and have their own table)."""
+    return [r for r in manifest.find("evaluate", task=task, **tags) if "eval_suite" not in r.tags]
+
+
 def _newest(records: list[StageRecord], **tags) -> StageRecord | None:
     found = [r for r in records if all(r.tags.get(k) == v for k, v in tags.items())]
     return found[-1] if found else None
@@ -38,7 +44,7 @@ def _report_json(manifest: Manifest, record: StageRecord | None, name: str) -> d
 
 
 def success_table(manifest: Manifest, task: str) -> tuple[list[str], dict]:
-    evals = manifest.find("evaluate", task=task)
+    evals = own_suite_evaluations(manifest, task)
     cells = {}  # (policy, termination) -> summary
     for policy in POLICIES:
         for term in TERMINATIONS:
@@ -187,7 +193,7 @@ def ablation_table(manifest: Manifest, task: str, limit: int = 8) -> list[str]:
     by_id = {r.id: r for r in manifest.records()}
     rows: dict[tuple, dict] = {}  # (checkpoint work dir, init states) -> {termination: success}, newest wins
     loops: dict[tuple, StageRecord | None] = {}
-    for ev in manifest.find("evaluate", task=task):
+    for ev in own_suite_evaluations(manifest, task):
         summary = _report_json(manifest, ev, "results.json")
         loop = _input(ev, "post_train_loop", by_id)
         if not summary or (loop is None and ev.tags.get("policy") != "sft"):
@@ -218,7 +224,7 @@ def video_section(manifest: Manifest, task: str, out: Path, per_policy: int = 3)
 
     lines = []
     for policy in POLICIES:
-        evals = manifest.find("evaluate", task=task, policy=policy)
+        evals = own_suite_evaluations(manifest, task, policy=policy)
         rec = _newest(evals, termination="reflector") or _newest(evals, termination="oracle")
         videos = sorted(rec.files("video"), key=lambda a: ("failure" in a.path, a.path)) if rec else []
         for art in videos[:per_policy]:
@@ -232,6 +238,25 @@ def video_section(manifest: Manifest, task: str, out: Path, per_policy: int = 3)
     return lines
 
 
+def other_suites_table(manifest: Manifest, task: str) -> list[str]:
+    """Policies of this task evaluated on another registered suite with the same tasks (`evaluate
+    eval_suite=...`, e.g. a LIBERO-PRO perturbation), newest per (policy, suite, termination)."""
+    newest = {}
+    for r in manifest.find("evaluate", task=task):
+        if "eval_suite" in r.tags:
+            newest[(r.tags.get("policy"), r.tags["eval_suite"], r.tags["termination"])] = r
+    lines = []
+    for (policy, suite, term), r in sorted(newest.items(), key=lambda kv: tuple(map(str, kv[0]))):
+        summary = _report_json(manifest, r, "results.json")
+        if summary:
+            lines.append(f"| {policy} | {suite} | {term} | {summary.get('max_steps', '')} | "
+                         f"{100 * summary['success_rate']:.1f} % | {summary['episodes']} |")
+    if not lines:
+        return []
+    return ["| policy | evaluated on suite | termination | step limit | success | episodes |",
+            "|---|---|---|---|---|---|", *lines]
+
+
 def write_report(experiment_dir: str | Path, task: str) -> Path:
     manifest = Manifest(experiment_dir)
     out = manifest.root / "report"
@@ -242,6 +267,10 @@ def write_report(experiment_dir: str | Path, task: str) -> Path:
     if cells:
         _plot_success(cells, out / "success.png")
         lines += ["", "![success](success.png)"]
+
+    others = other_suites_table(manifest, task)
+    if others:
+        lines += ["", f"## Evaluated on other suites (trained on {task}'s)", ""] + others
 
     videos = video_section(manifest, task, out)
     if videos:

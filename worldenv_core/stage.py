@@ -9,9 +9,9 @@ import random
 from pathlib import Path
 
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
-from worldenv_core.envs.tasks import check_suite, resolve_task_ids
+from worldenv_core.envs.tasks import check_suite, resolve_task_ids, suite_max_steps
 from worldenv_core.manifest import Manifest, config_hash
 
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
@@ -31,11 +31,17 @@ def require_task(cfg: DictConfig) -> DictConfig:
     task = cfg.get("task")
     if task is None:
         raise ConfigError(
-            "no task selected: add +task=<name> to the command, e.g. `python -m stages.collect +task=libero_goal`.\n"
-            f"Valid tasks: {', '.join(available_tasks())}"
+            "no task selected: add +task=<name> to the command, e.g. `python -m stages.collect +task=libero_goal` "
+            f"(valid tasks: {', '.join(available_tasks())}; +task=suite task.suite=<name> for any registered suite)"
         )
+    if OmegaConf.is_missing(task, "suite"):
+        raise ConfigError("task.suite has no value: add task.suite=<a registered LIBERO suite>, "
+                          "e.g. +task=suite task.suite=libero_goal_swap")
     check_suite(task.suite)
     resolve_task_ids(task.suite, task.task_ids)
+    if task.get("max_steps") is None:  # null: the standard horizon of the suite it derives from
+        with open_dict(task):
+            task.max_steps = suite_max_steps(task.suite)
     return task
 
 
@@ -128,12 +134,15 @@ def resolve_policy(cfg: DictConfig, stage_run) -> str:
 # Scale settings that choose how a result is evaluated, not what is trained (each stage's own
 # copy, e.g. train_reflector's eta_folds, is left out of its work-dir name as well).
 EVALUATION_ONLY_SCALE_KEYS = ("reflector_eta_folds",)
+# Settings that only choose how a run is watched: changing them continues the same run.
+NOT_NAMING_WORK_DIRS = ("logger",)
 
 
 def work_dir(experiment_dir, stage: str, config: dict, inputs: list[str]) -> Path:
     """Where a training stage keeps the checkpoints it resumes from, named by its settings and by
     the manifest records it read: rerun on other data (a newer collection, another policy) it
     starts fresh instead of resuming, or reusing, a run trained on something else."""
+    config = {k: v for k, v in config.items() if k not in NOT_NAMING_WORK_DIRS}
     if isinstance(config.get("scale"), dict):
         config = {**config, "scale": {k: v for k, v in config["scale"].items() if k not in EVALUATION_ONLY_SCALE_KEYS}}
     return Path(experiment_dir) / stage / config_hash({**config, "inputs": sorted(inputs)})

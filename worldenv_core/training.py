@@ -158,5 +158,7 @@ class RunningMeans:
         entry = {"step": done, **{k: sum(v) / len(v) for k, v in self.values.items()}}
         self.history.append(entry)
         self.values.clear()
+        if self.tracker is not None:
+            self.tracker.log(entry, done)
         if self.bar is not None:
             self.bar.set_postfix({k: f"{v:.4f}" for k, v in entry.items() if k != "step"})

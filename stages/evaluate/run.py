@@ -13,7 +13,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from worldenv_core.envs.collection import PolicyEvalJob, evaluate_policy_task
-from worldenv_core.envs.tasks import resolve_task_ids
+from worldenv_core.envs.tasks import check_suite, num_tasks, resolve_task_ids, suite_max_steps
 from worldenv_core.manifest import StageRun
 from worldenv_core.models.checkpoint import read_config
 from worldenv_core.models.reflector import check_eta, reflector_eta
@@ -45,6 +45,22 @@ def validate(cfg: DictConfig) -> None:
             check_eta(cfg.eta)
     except ValueError as e:
         raise ConfigError(str(e)) from None
+    if cfg.eval_suite is not None:
+        target_suite(cfg)
+
+
+def target_suite(cfg: DictConfig) -> tuple[str, int]:
+    """The suite evaluated on and its step limit: the task's own, or `eval_suite` (any registered
+    suite holding the task's task ids, e.g. a LIBERO-PRO variant of the suite trained on) with its
+    derived step limit or `eval_max_steps`."""
+    if cfg.eval_suite is None:
+        return cfg.task.suite, cfg.task.max_steps
+    suite = check_suite(cfg.eval_suite)
+    for t in resolve_task_ids(cfg.task.suite, cfg.task.task_ids):
+        if t >= num_tasks(suite):
+            raise ConfigError(f"eval_suite {suite} has {num_tasks(suite)} tasks, but task {cfg.task.name} evaluates "
+                              f"task id {t}: evaluate on a suite with the same tasks")
+    return suite, suite_max_steps(suite, cfg.eval_max_steps)
 
 
 def resolve_reflector(cfg: DictConfig, stage: StageRun) -> str:
@@ -68,25 +84,28 @@ def run(cfg: DictConfig) -> dict:
                else manifest.root / "evaluate" / cfg.termination)
     modes = MODES if cfg.termination == "all" else (cfg.termination,)
     policy_tag = cfg.policy_from if cfg.policy_from in POLICY_SOURCES else "custom"
+    suite, max_steps = target_suite(cfg)
+    # Only a cross-suite evaluation carries the tag, so the report keeps it apart from the task's own.
+    suite_tag = {"eval_suite": suite} if cfg.eval_suite is not None else {}
     summaries = {}
     with ExitStack() as records:  # one manifest record per mode, all timed over the shared rollouts
         stages = {m: records.enter_context(StageRun(manifest, "evaluate", {
-            "task": task.name, "scale": cfg.scale.name, "termination": m, "policy": policy_tag}, resolved(cfg)))
-            for m in modes}
+            "task": task.name, "scale": cfg.scale.name, "termination": m, "policy": policy_tag, **suite_tag},
+            resolved(cfg))) for m in modes}
         policy_path = [resolve_policy(cfg, s) for s in stages.values()][0]
         reflector_path = ([resolve_reflector(cfg, s) for s in stages.values()][0]
                           if cfg.termination in ("reflector", "all") else None)
         eta = reflector_eta(reflector_path, cfg.eta) if reflector_path else None
         inits = list(range(cfg.init_states))
-        jobs = [PolicyEvalJob(policy_path=policy_path, suite=task.suite, task_id=t, init_ids=tuple(inits[i:i + JOB_SIZE]),
+        jobs = [PolicyEvalJob(policy_path=policy_path, suite=suite, task_id=t, init_ids=tuple(inits[i:i + JOB_SIZE]),
                               cameras=tuple(task.cameras), image_size=task.image_size, chunk=task.chunk,
-                              max_steps=task.max_steps, termination=cfg.termination,
+                              max_steps=max_steps, termination=cfg.termination,
                               video_ids=tuple(inits[:cfg.videos_per_task]), reflector_path=reflector_path,
                               eta=eta)
                 for t in resolve_task_ids(task.suite, task.task_ids) for i in range(0, len(inits), JOB_SIZE)]
         rows, videos = [], {}
         for out in run_jobs(evaluate_policy_task, jobs, workers=cfg.workers, launcher=cfg.launcher,
-                            desc=f"evaluate {task.name} ({cfg.termination})", ray_address=cfg.ray_address,
+                            desc=f"evaluate {task.name} on {suite} ({cfg.termination})", ray_address=cfg.ray_address,
                             progress=cfg.progress, unit="job"):
             rows += out["rows"]
             for i, frames in out["videos"].items():
@@ -105,13 +124,15 @@ def record_mode(stage: StageRun, cfg: DictConfig, mode: str, rows: list[dict], v
     """Write one termination mode's results, episodes and videos, and fill its manifest record."""
     out_dir.mkdir(parents=True, exist_ok=True)
     summary = summarise(rows)
-    summary.update(policy=policy_path, termination=mode, init_states=cfg.init_states, report_dir=str(out_dir))
+    suite, max_steps = target_suite(cfg)
+    summary.update(policy=policy_path, termination=mode, init_states=cfg.init_states, report_dir=str(out_dir),
+                   suite=suite, max_steps=max_steps)
     if mode == "reflector":
         summary.update(reflector=reflector_path, eta=eta, reflector_termination=termination_metrics(
             [StopOutcome(r["first_success_step"], r["stop_step"]) for r in rows if r["error"] is None]))
     (out_dir / "episodes.json").write_text(json.dumps(rows, indent=1))
     (out_dir / "results.json").write_text(json.dumps(summary, indent=2))
-    (out_dir / "results.md").write_text(markdown(summary, cfg.task.suite))
+    (out_dir / "results.md").write_text(markdown(summary, suite))
     for name in ("results.json", "results.md", "episodes.json"):
         stage.add_output(out_dir / name, kind="report")
     for (tid, i), frames in sorted(videos.items()):
@@ -121,7 +142,7 @@ def record_mode(stage: StageRun, cfg: DictConfig, mode: str, rows: list[dict], v
         path = montage_video([frames], out_dir / "videos" / f"task{tid:02d}_init{i:02d}_{'success' if r['success'] else 'failure'}.gif")
         stage.add_output(path, kind="video")
     stage.metrics.update({k: v for k, v in summary.items() if k != "per_task"})
-    print(markdown(summary, cfg.task.suite))
+    print(markdown(summary, suite))
     return summary
 
 

@@ -25,7 +25,7 @@ from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.data.selection import MissingEpisodesError, collected_episodes
 from worldenv_core.envs.collection import PolicyEvalJob, evaluate_policy_task
 from worldenv_core.envs.imagined import ImaginedSimulator
-from worldenv_core.envs.tasks import resolve_task_ids
+from worldenv_core.envs.tasks import get_task, resolve_task_ids
 from worldenv_core.kinematics.camera import PinholeCamera
 from worldenv_core.manifest import StageRun
 from worldenv_core.models.checkpoint import read_config, save_model
@@ -34,12 +34,24 @@ from worldenv_core.models.reflector import check_eta, load_reflector, reflector_
 from worldenv_core.models.text import InstructionEncoder
 from worldenv_core.parallel import run_jobs
 from worldenv_core.rl.imagined_env import Context, ImaginedEnv
+from worldenv_core.rl.imagined_recording import record_imagined_rollouts, write_imagined_rollouts
 from worldenv_core.rl.loop import collect_rollouts, policy_param_groups, ppo_update
 from worldenv_core.stage import (ConfigError, positive_int, require_task, resolve_checkpoint, resolve_policy, work_dir,
                                  resolved, start)
+from worldenv_core.tracking import make_tracker
 from worldenv_core.training import Checkpoints, pick_device, plot_history
 
 log = logging.getLogger("worldenv.post_train_loop")
+# Measured at evaluations (the tracker's "eval/" group); the rest of an iteration's entry is training.
+EVAL_KEYS = ("real_success", "imagined_reward", "imagined_success", "imagined_real_gap")
+
+
+def with_gap(entry: dict) -> dict:
+    """The imagined-vs-real gap where both were measured: the reflector's imagined success rate on
+    the fixed contexts minus the real success rate (positive: imagination is too generous)."""
+    if "real_success" in entry and "imagined_success" in entry:
+        entry["imagined_real_gap"] = entry["imagined_success"] - entry["real_success"]
+    return entry
 
 
 def validate(cfg: DictConfig) -> None:
@@ -50,6 +62,7 @@ def validate(cfg: DictConfig) -> None:
     positive_int(cfg, "eval.every", allow_zero=True)
     positive_int(cfg, "eval.init_states")
     positive_int(cfg, "eval.imagined_contexts", allow_zero=True)
+    positive_int(cfg, "eval.record_contexts", allow_zero=True)
     if cfg.eval.imagined_contexts and cfg.eval.imagined_rollouts < 2:
         raise ConfigError(f"eval.imagined_rollouts must be at least 2, got {cfg.eval.imagined_rollouts}")
     if cfg.rl.n_rollouts < 2:
@@ -102,6 +115,19 @@ def imagined_success(policy, env, contexts: list[Context], cfg, encoder) -> dict
             "imagined_success": float(batch.by_reflector.float().mean())}
 
 
+def record_imagined(policy, env, contexts: list[Context], cfg, encoder, camera: str, out_dir: Path,
+                    extra: dict) -> list[Path]:
+    """A few imagined rollouts of the policy, every frame, written as MCAP episodes (the same
+    fixed contexts and noise at every evaluation, so the files show what training changed)."""
+    n = min(cfg.eval.record_contexts, len(contexts))
+    g = torch.Generator().manual_seed(cfg.seed + 9_999)
+    picks = torch.randperm(len(contexts), generator=g)[:n].tolist()
+    names = {t: get_task(cfg.task.suite, t).name for t in {contexts[i].task_id for i in picks}}
+    rollouts = record_imagined_rollouts(policy, env, [contexts[i] for i in picks], 2, encoder, cfg.task.suite, names,
+                                        camera, extra=extra, generator=g, fps=float(cfg.task.control_freq))
+    return write_imagined_rollouts(rollouts, out_dir, env.eta)
+
+
 def real_success(cfg, policy_path: str) -> float:
     """Success in the real simulator (oracle termination) on the first benchmark init states."""
     task = cfg.task
@@ -151,10 +177,20 @@ def run(cfg: DictConfig) -> dict:
                  policy_path, rl.iterations, rl.contexts_per_iteration, rl.n_rollouts, eta, device, work)
         encode = lambda s: encoder(s).to(device)  # noqa: E731
         imagine = (lambda: imagined_success(policy, env, contexts, cfg, encode)) if cfg.eval.imagined_contexts else dict
+        tracker = make_tracker(cfg, work, "post_train_loop", config)
+        provenance = {"policy": policy_path, "worldsim": worldsim_path, "reflector": reflector_path}
+
+        def record(iteration: int) -> None:  # a sample of imagined rollouts to look at
+            if cfg.eval.record_contexts:
+                record_imagined(policy, env, contexts, cfg, encode, camera, work / "imagined" / f"iter_{iteration:04d}",
+                                {**provenance, "iteration": str(iteration)})
+
         if start_it == 0:
-            history.append({"step": 0, **imagine(), **({"real_success": real_success(cfg, policy_path)}
-                                                       if cfg.eval.every else {})})
+            history.append(with_gap({"step": 0, **imagine(), **({"real_success": real_success(cfg, policy_path)}
+                                                                if cfg.eval.every else {})}))
+            tracker.log(history[-1], 0, group="eval")
             log.info("SFT policy: %s", json.dumps(history[-1]))
+            record(0)
         t0 = time.perf_counter()
         bar = tqdm(range(start_it, rl.iterations), initial=start_it, total=rl.iterations, desc="post_train_loop",
                    disable=not cfg.progress, dynamic_ncols=True)
@@ -175,17 +211,25 @@ def run(cfg: DictConfig) -> dict:
                 entry.update(imagine())
             if cfg.eval.every and (done % cfg.eval.every == 0 or done == rl.iterations):
                 entry["real_success"] = real_success(cfg, str(path))
+                with_gap(entry)
                 ckpts.save(done, policy, policy_cfg, {**meta, "iteration": done}, {"ppo": optimizer}, history + [entry])
+            if done == rl.iterations or (cfg.eval.every and done % cfg.eval.every == 0):
+                record(done)
             history.append(entry)
+            tracker.log({k: v for k, v in entry.items() if k not in EVAL_KEYS}, done, group="train")
+            tracker.log({k: v for k, v in entry.items() if k in EVAL_KEYS}, done, group="eval")
             bar.set_postfix(reward=f"{entry['mean_reward']:.3f}", stop=f"{entry['reflector_success_rate']:.2f}",
                             kl=f"{entry['approx_kl']:.4f}")
             log.info("iteration %d: %s", done, json.dumps({k: round(v, 4) for k, v in entry.items()}))
         bar.close()
+        tracker.close()
         final = save_model(work / "policy", policy.cpu(), policy_cfg, {**meta, "iteration": rl.iterations})
         for f in sorted(final.iterdir()):
             stage.add_output(f, kind="checkpoint")
         stage.add_output(plot_history(history, work / "training.png", f"post_train_loop {task.name}"), kind="plot")
-        stage.add_output(work / "training.json", kind="report")  # the per-iteration log beside the plot, for the report
+        stage.add_output(work / "training.json", kind="report")
+        for path in sorted((work / "imagined").glob("iter_*/*.mcap")):  # every sitting's, also before a resume
+            stage.add_output(path, kind="imagined")  # the per-iteration log beside the plot, for the report
         evals = [h for h in history if "real_success" in h]
         stage.metrics.update({"iterations": rl.iterations, "train_wall_s": round(time.perf_counter() - t0, 1),
                               "device": str(device), "final_mean_reward": history[-1].get("mean_reward"),

@@ -3,11 +3,13 @@ import hydra
 from omegaconf import DictConfig
 
 from stages.train_policy.run import run
+from worldenv_core.cli import user_errors
 
 
 @hydra.main(config_path="../../conf", config_name="train_policy", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    run(cfg)
+    with user_errors():
+        run(cfg)
 
 
 if __name__ == "__main__":

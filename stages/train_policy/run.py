@@ -24,6 +24,7 @@ from worldenv_core.models.checkpoint import save_model
 from worldenv_core.models.text import InstructionEncoder
 from worldenv_core.rl.laplace import laplace_nll
 from worldenv_core.stage import ConfigError, positive_int, require_task, resolved, start, work_dir
+from worldenv_core.tracking import make_tracker
 from worldenv_core.training import Checkpoints, RunningMeans, batches, pick_device, plot_history, random_shift
 
 log = logging.getLogger("worldenv.train_policy")
@@ -95,7 +96,8 @@ def run(cfg: DictConfig) -> dict:
         scale_batches = batches(data, cfg.scale_head.batch_size, cfg.seed + 1, start_step=max(0, step - n_action))
         t0 = time.perf_counter()
         bar = tqdm(range(step, total), initial=step, total=total, desc="train_policy", dynamic_ncols=True)
-        running = RunningMeans(history, cfg.train.log_every, bar)
+        tracker = make_tracker(cfg, work, "train_policy", config)
+        running = RunningMeans(history, cfg.train.log_every, bar, tracker)
         for step in bar:
             model.train()
             if step < n_action:
@@ -130,6 +132,7 @@ def run(cfg: DictConfig) -> dict:
             if done % cfg.train.checkpoint_every == 0 or done == total:
                 ckpts.save(done, model, model_cfg, meta, optimizers, history)
         bar.close()
+        tracker.close()
         final = save_model(work / "policy", model.cpu(), model_cfg, {**meta, "step": total})
         for f in sorted(final.iterdir()):
             stage.add_output(f, kind="checkpoint")

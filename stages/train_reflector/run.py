@@ -30,6 +30,7 @@ from worldenv_core.models.reflector_data import PrefixSampler
 from worldenv_core.models.text import InstructionEncoder
 from worldenv_core.rl.termination import StopOutcome, best_eta, check_steps, first_stop, first_success, success_labels, termination_metrics
 from worldenv_core.stage import ConfigError, positive_int, require_task, resolve_checkpoint, resolved, start, work_dir
+from worldenv_core.tracking import make_tracker
 from worldenv_core.training import Checkpoints, RunningMeans, pick_device, plot_history, random_shift
 
 log = logging.getLogger("worldenv.train_reflector")
@@ -127,8 +128,9 @@ def run(cfg: DictConfig) -> dict:
     return stage.metrics
 
 
-def fit(cfg, episodes: list, work: Path, device, encoder, meta_extra: dict):
-    """Train (or resume, or find finished in `work`) a reflector on `episodes`.
+def fit(cfg, episodes: list, work: Path, device, encoder, meta_extra: dict, overall=None):
+    """Train (or resume, or find finished in `work`) a reflector on `episodes`; `overall`: a
+    progress bar over several fits (the cross-validation's) that this one's steps advance.
     -> (model on the CPU in eval mode, its config, its meta, the loss history; [] when untrainable)."""
     try:
         sampler = PrefixSampler(episodes, cfg.camera, cfg.frame_stride, cfg.reflector.max_frames,
@@ -145,7 +147,7 @@ def fit(cfg, episodes: list, work: Path, device, encoder, meta_extra: dict):
     if getattr(model, "trainable", True):
         log.info("training on %d episodes (%s) for %d steps on %s; work dir %s", len(episodes), sampler.counts(),
                  cfg.train.steps, device, work)
-        history = train(cfg, model, model_cfg, meta, sampler, encoder, work, device)
+        history = train(cfg, model, model_cfg, meta, sampler, encoder, work, device, overall)
     else:  # the VLM yes/no mode: nothing to train, its checkpoint is the config naming the VLM
         log.info("%s has nothing to train", type(model).__name__)
     return model.cpu().eval(), model_cfg, meta, history
@@ -169,6 +171,8 @@ def cross_validate_eta(cfg, paths: list[Path], episodes: list, work: Path, devic
     of `episodes` (train.with_imagined), trained on with their fold; scoring is on real video."""
     folds = cross_validation_folds(paths, cfg.eta_folds)
     scored, curves = [], []  # every training episode once, by the reflector that did not train on it
+    overall = tqdm(total=len(folds) * cfg.train.steps, desc=f"eta cross-validation ({len(folds)} folds)",
+                   unit="step", dynamic_ncols=True, position=0)
     for k, fold in enumerate(folds):
         keep = set(fold)
         fit_eps = [ep for i, ep in enumerate(episodes) if i not in keep]
@@ -177,11 +181,12 @@ def cross_validate_eta(cfg, paths: list[Path], episodes: list, work: Path, devic
         log.info("eta cross-validation: fold %d of %d (%d episodes held out of %d)", k + 1, len(folds),
                  len(val_eps), len(episodes))
         model, *_ = fit(cfg, fit_eps, work / "folds" / f"{k + 1}-of-{len(folds)}", device, encoder,
-                        {"held_out": [episode_key(paths[i]) for i in fold]})
+                        {"held_out": [episode_key(paths[i]) for i in fold]}, overall)
         _, fold_curves = evaluate_videos(model, encoder, val_eps, [ep.video(cfg.camera) for ep in val_eps],
                                          cfg.frame_stride, cfg.eta)
         scored += val_eps
         curves += fold_curves
+    overall.close()
     sweep = {str(e): termination_at(scored, curves, e) for e in ETA_SWEEP}
     return {"folds": len(folds), "episodes": len(episodes),
             "eta_sweep": {e: {"termination_f1": m["f1"], "episodes": m["episodes"], "false_stops": m["false_stops"],
@@ -195,7 +200,8 @@ def termination_at(episodes, curves, eta: float) -> dict:
                                 for ep, (steps, scores) in zip(episodes, curves)])
 
 
-def train(cfg, model, model_cfg: dict, meta: dict, sampler: PrefixSampler, encoder, work: Path, device) -> list[dict]:
+def train(cfg, model, model_cfg: dict, meta: dict, sampler: PrefixSampler, encoder, work: Path, device,
+          overall=None) -> list[dict]:
     """BCE on balanced prefixes; resumes from the work dir's last checkpoint. Returns the history."""
     opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=cfg.train.lr,
                             weight_decay=cfg.train.weight_decay)
@@ -205,8 +211,12 @@ def train(cfg, model, model_cfg: dict, meta: dict, sampler: PrefixSampler, encod
     mine_every = cfg.train.mine.every
     if mine_every and mine_every <= step < total:  # resumed: the hard set the run had (checkpoints fall on mining steps)
         _mine(cfg, model, sampler, encoder, device, step - step % mine_every)
-    bar = tqdm(range(step, total), initial=step, total=total, desc="train_reflector", dynamic_ncols=True)
-    running = RunningMeans(history, cfg.train.log_every, bar)
+    if overall is not None:
+        overall.update(step)  # what earlier sittings (or a finished fold) did
+    bar = tqdm(range(step, total), initial=step, total=total, desc="train_reflector", dynamic_ncols=True,
+               position=0 if overall is None else 1, leave=overall is None)
+    tracker = make_tracker(cfg, work, "train_reflector")
+    running = RunningMeans(history, cfg.train.log_every, bar, tracker)
     for step in bar:
         model.train()
         b = sampler.batch(cfg.train.batch_size, seed=cfg.seed * 1_000_003 + step)  # by step: resumes exactly
@@ -222,11 +232,14 @@ def train(cfg, model, model_cfg: dict, meta: dict, sampler: PrefixSampler, encod
         running.add(bce=loss.item(), batch_accuracy=((logits > 0).float() == label).float().mean().item())
         done = step + 1
         running.end_step(done, total)
+        if overall is not None:
+            overall.update(1)
         if mine_every and done % mine_every == 0 and done < total:
             _mine(cfg, model, sampler, encoder, device, done)
         if done % cfg.train.checkpoint_every == 0 or done == total:
             ckpts.save(done, model, model_cfg, meta, {"reflector": opt}, history)
     bar.close()
+    tracker.close()
     return history
 
 

@@ -20,7 +20,8 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from worldenv_core.envs.imagined import ImaginedSimulator, open_loop_fidelity
+from worldenv_core.data.mcap_io import write_imagined_episode
+from worldenv_core.envs.imagined import ImaginedSimulator, open_loop_fidelity, replay_from_start
 from worldenv_core.kinematics.action_map import draw_action_maps_per_rollout
 from worldenv_core.kinematics.camera import PinholeCamera
 from worldenv_core.kinematics.next_state import NextStateModel, state_errors
@@ -28,7 +29,9 @@ from worldenv_core.data.selection import episode_key, load_split
 from worldenv_core.manifest import StageRun
 from worldenv_core.models.checkpoint import save_model
 from worldenv_core.models.worldsim_data import LatentChunks, encode_episode_frames
+from worldenv_core.rl.imagined_recording import imagined_replay
 from worldenv_core.stage import ConfigError, positive_int, require_task, resolved, start, work_dir
+from worldenv_core.tracking import make_tracker
 from worldenv_core.training import Checkpoints, RunningMeans, batches, pick_device, plot_history
 from worldenv_core.viz import montage_video
 
@@ -99,7 +102,8 @@ def run(cfg: DictConfig) -> dict:
         chunks = flow_batches = None
         t0 = time.perf_counter()
         bar = tqdm(range(step, total), initial=step, total=total, desc="train_worldsim", dynamic_ncols=True)
-        running = RunningMeans(history, cfg.log_every, bar)
+        tracker = make_tracker(cfg, work, "train_worldsim", config)
+        running = RunningMeans(history, cfg.log_every, bar, tracker)
         for step in bar:
             model.train()
             if step < n_ae:
@@ -147,10 +151,17 @@ def run(cfg: DictConfig) -> dict:
             stage.add_output(f, kind="checkpoint")
         stage.add_output(plot_history(history, work / "losses.png", f"train_worldsim {task.name}"), kind="plot")
         report = evaluate_fidelity(cfg, ema, kinematics, cameras, held_eps, work)
+        tracker.log({f"{k}_h{h}": v[k] for h, v in report["fidelity"].items() for k in ("model_psnr", "model_ssim",
+                                                                                       "copy_psnr", "copy_ssim")},
+                    total, group="eval")
+        tracker.close()
         for name in ("fidelity.json", "fidelity.md"):
             stage.add_output(work / name, kind="report")
         for video in sorted((work / "videos").glob("*.gif")):
             stage.add_output(video, kind="video")
+        for replay in write_replays(ema, kinematics, cameras, held_eps[: cfg.fidelity.videos], work / "imagined",
+                                    {"worldsim": str(final)}, cfg.seed):
+            stage.add_output(replay, kind="imagined")
         stage.metrics.update({"episodes": len(episodes), "held_out": len(held_eps), "steps": total,
                               "train_wall_s": round(train_s, 1), "device": str(device), **report})
         log.info("world simulator saved to %s; metrics %s", final, json.dumps(stage.metrics))
@@ -177,6 +188,21 @@ def _fidelity(cfg, model, kinematics, cameras, held_eps, detail_gate: float) -> 
         if n:
             fidelity[h] = {k: _weighted_mean([(p[k], p["n"]) for p in parts]) for k in parts[0] if k != "n"} | {"n": n}
     return fidelity, videos
+
+
+def write_replays(model, kinematics, cameras, episodes, out_dir: Path, extra: dict, seed: int) -> list[Path]:
+    """Held-out episodes replayed open loop by the world model from their first frame, each written
+    as an imagined episode with the real one beside it under `/real` (Foxglove:
+    foxglove/imagined_vs_real.json shows both)."""
+    g = torch.Generator().manual_seed(seed + 1)  # its own noise: the fidelity figures stay as they were
+    paths = []
+    for i, ep in enumerate(episodes):
+        sim = ImaginedSimulator(model, kinematics, cameras[ep.meta.task_id])
+        (frames, proprio), = replay_from_start(sim, [ep], camera=ep.meta.cameras[0], generator=g, with_proprio=True)
+        imagined = imagined_replay(ep, frames, proprio, extra)
+        paths.append(write_imagined_episode(out_dir / f"heldout_{i:02d}_task{ep.meta.task_id:02d}.mcap", imagined,
+                                            real=ep))
+    return paths
 
 
 def _weighted_mean(values_weights) -> float:

@@ -53,7 +53,7 @@ def test_unknown_task_id_and_unwritable_output(tmp_path):
 def test_missing_task_lists_valid_tasks(tmp_path):
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose("collect", overrides=[f"experiment_dir={tmp_path}"])
-    with pytest.raises(ConfigError, match="libero_goal, libero_object, libero_spatial, tiny"):
+    with pytest.raises(ConfigError, match="libero_goal, libero_object, libero_spatial, suite, tiny"):
         run(cfg)
 
 

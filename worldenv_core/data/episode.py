@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from worldenv_core.robot import ACTION_DIM, JOINT_DIM, PROPRIO_DIM  # noqa: F401 (re-exported)
-SOURCES = ("expert", "policy", "import")
+SOURCES = ("expert", "policy", "import", "imagined")  # imagined: a world-model rollout (not training data)
 
 
 @dataclass

@@ -23,6 +23,7 @@ import logging
 import os
 import shutil
 from collections.abc import Callable, Iterable, Iterator
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +47,19 @@ def _lerobot_dataset():
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     return LeRobotDataset
+
+
+@lru_cache(maxsize=1)
+def video_backend() -> str:
+    """The video decoder LeRobot should use here: torchcodec when its FFmpeg libraries load, else
+    pyav (bundled with its own FFmpeg). Chosen once with a one-line notice, because left to itself
+    lerobot logs torchcodec's ~40-line loading traceback every time it looks."""
+    try:
+        import torchcodec  # noqa: F401
+    except (ImportError, OSError, RuntimeError):
+        log.info("torchcodec cannot load its FFmpeg libraries here; LeRobot video decoding uses pyav")
+        return "pyav"
+    return "torchcodec"
 
 
 def _iter_input(episodes_or_paths) -> Iterator[Episode]:
@@ -97,8 +111,11 @@ def export_lerobot(episodes_or_paths: Episode | Iterable[Episode | str | os.Path
         SUCCESS_KEY: {"dtype": "bool", "shape": (1,), "names": None},
         PAD_KEY: {"dtype": "bool", "shape": (1,), "names": None},
     }
+    from datasets.utils.logging import disable_progress_bar
+
+    disable_progress_bar()  # two "Map" bars per episode from Hugging Face datasets: noise in our logs
     ds = _lerobot_dataset().create(repo_id, fps=fps_val, features=features, root=partial,
-                                   robot_type=robot_type, use_videos=use_videos)
+                                   robot_type=robot_type, use_videos=use_videos, video_backend=video_backend())
     metas = []
     try:
         for ep in _chain(first, it):
@@ -156,7 +173,7 @@ def import_lerobot(root: str | os.PathLike, repo_id: str, *, key_map: dict[str, 
     is `assume_success` (demonstrations succeed) and earlier frames are False.
     """
     root = Path(root)
-    ds = _lerobot_dataset()(repo_id, root=root, return_uint8=True)
+    ds = _lerobot_dataset()(repo_id, root=root, return_uint8=True, video_backend=video_backend())
     feats = ds.features
     km = {"state": STATE_KEY, "action": ACTION_KEY}
     if SUCCESS_KEY in feats:

@@ -214,10 +214,10 @@ def _ssim_by_region(row: dict, model_map: torch.Tensor, copy_map: torch.Tensor, 
 
 @torch.no_grad()
 def replay_from_start(sim: ImaginedSimulator, episodes, camera: str = "agentview",
-                      generator: torch.Generator | None = None) -> list[torch.Tensor]:
+                      generator: torch.Generator | None = None, with_proprio: bool = False) -> list:
     """Imagine each episode from its first real frame, driven by its recorded actions alone
     (open loop, batched over the episodes). Returns per episode (T+1, 3, H, W) uint8: the real
-    first frame, then T imagined frames."""
+    first frame, then T imagined frames; `with_proprio`: (frames, (T+1, 7) imagined proprio)."""
     k = sim.model.chunk
     n_chunks = max(-(-ep.length // k) for ep in episodes)
     acts = torch.zeros(len(episodes), n_chunks * k, 7)
@@ -227,9 +227,13 @@ def replay_from_start(sim: ImaginedSimulator, episodes, camera: str = "agentview
         acts[i, len(a):] = a[-1]  # a finished episode holds its last command while the others go on
     first = torch.stack([torch.from_numpy(ep.images[camera][:1]).permute(0, 3, 1, 2) for ep in episodes])
     sim.reset(first, torch.stack([torch.from_numpy(ep.proprio[0]) for ep in episodes]).double())
-    chunks = [sim.step(acts[:, c * k:(c + 1) * k], generator=generator).frames for c in range(n_chunks)]
-    frames = torch.cat([first, *chunks], dim=1)
-    return [frames[i, : ep.length + 1] for i, ep in enumerate(episodes)]
+    start = sim.proprio.float().cpu()[:, None]
+    outs = [sim.step(acts[:, c * k:(c + 1) * k], generator=generator) for c in range(n_chunks)]
+    frames = torch.cat([first, *(o.frames for o in outs)], dim=1)
+    if not with_proprio:
+        return [frames[i, : ep.length + 1] for i, ep in enumerate(episodes)]
+    proprio = torch.cat([start, *(o.proprio.cpu() for o in outs)], dim=1)
+    return [(frames[i, : ep.length + 1], proprio[i, : ep.length + 1]) for i, ep in enumerate(episodes)]
 
 
 def _histories(imgs: torch.Tensor, starts: list[int], history: int) -> torch.Tensor:

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from worldenv_core.envs.libero_env import Frame, LiberoEnv
-from worldenv_core.envs.tasks import SUITES
+from worldenv_core.envs.tasks import suite_seed_id
 
 log = logging.getLogger(__name__)
 
@@ -38,7 +38,7 @@ def cached_env(suite: str, task_id: int, cameras, image_size: int, render: bool 
 
 def attempt_seed(base_seed: int, suite: str, task_id: int, episode_index: int, attempt: int) -> int:
     """A well-mixed 32-bit seed per attempt, stable across runs and workers (resume relies on it)."""
-    seq = np.random.SeedSequence([int(base_seed), SUITES.index(suite), int(task_id), int(episode_index), int(attempt)])
+    seq = np.random.SeedSequence([int(base_seed), suite_seed_id(suite), int(task_id), int(episode_index), int(attempt)])
     return int(seq.generate_state(1)[0])
 
 

