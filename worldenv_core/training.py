@@ -142,10 +142,10 @@ def random_shift(images: torch.Tensor, pad: int, generator: torch.Generator | No
 
 class RunningMeans:
     """Per-step values (losses, diagnostics) averaged into one `history` entry every `every`
-    steps and at the last, and shown on the progress bar."""
+    steps and at the last, shown on the progress bar and sent to the tracker (TensorBoard, ...)."""
 
-    def __init__(self, history: list[dict], every: int, bar=None):
-        self.history, self.every, self.bar = history, int(every), bar
+    def __init__(self, history: list[dict], every: int, bar=None, tracker=None):
+        self.history, self.every, self.bar, self.tracker = history, int(every), bar, tracker
         self.values: dict[str, list[float]] = {}
 
     def add(self, **values: float) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import logging
 from contextlib import ExitStack
+from datetime import datetime
 from pathlib import Path
 
 import numpy as np
@@ -80,8 +81,10 @@ def run(cfg: DictConfig) -> dict:
     the requested mode, or {mode: summary} for all."""
     manifest = start(cfg, validate)
     task = cfg.task
+    # Outside Hydra (Python, tests) each evaluation gets its own folder too, as Hydra's run dir does,
+    # so a later evaluation never overwrites the files an earlier record points at.
     run_dir = (Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized()
-               else manifest.root / "evaluate" / cfg.termination)
+               else manifest.root / "evaluate" / f"{cfg.termination}-{datetime.now():%Y-%m-%d_%H-%M-%S-%f}")
     modes = MODES if cfg.termination == "all" else (cfg.termination,)
     policy_tag = cfg.policy_from if cfg.policy_from in POLICY_SOURCES else "custom"
     suite, max_steps = target_suite(cfg)

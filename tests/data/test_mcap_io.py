@@ -194,3 +194,43 @@ def test_list_episode_files(tmp_path, episode_dir):
     files = list_episode_files(episode_dir)
     assert [f.name for f in files] == ["ep_000.mcap", "ep_001.mcap", "ep_002.mcap"]
     assert list_episode_files(files[0]) == [files[0]]
+
+
+# ------------------------------------------------------------------ imagined rollouts
+
+LAYOUT = __import__("pathlib").Path(__file__).resolve().parents[2] / "foxglove" / "imagined_vs_real.json"
+
+
+def _layout_topics() -> set[str]:
+    """Every topic the Foxglove layout's panels read (image topics, and plot paths up to the field)."""
+    cfg = json.loads(LAYOUT.read_text())["configById"]
+    topics = {c["imageMode"]["imageTopic"] for k, c in cfg.items() if k.startswith("Image!")}
+    topics |= {p["value"].split(".")[0] for k, c in cfg.items() if k.startswith("Plot!") for p in c["paths"]}
+    return topics
+
+
+def test_an_imagined_rollout_reads_back_beside_its_real_counterpart(tmp_path, make_ep):
+    real = make_ep(T=8, cameras=("agentview",), seed=1)
+    imagined = make_ep(T=8, cameras=("agentview",), seed=2, sim_dim=0)
+    imagined.meta.source = "imagined"
+    scores = {0: 0.1, 4: 0.4, 8: 0.9}
+    path = mcap_io.write_imagined_episode(tmp_path / "r.mcap", imagined, scores, eta=0.5, real=real)
+    assert episode_differences(imagined, read_episode(path)) == []  # the same layout as any episode
+    assert episode_differences(real, read_episode(path, prefix="/real")) == []
+    assert mcap_io.read_reflector_scores(path) == scores
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        topics = {c.topic for c in reader.get_summary().channels.values()}
+        stops = [json.loads(m.data)["stop"] for _, c, m in reader.iter_messages(topics=["/reflector"])]
+    assert stops == [False, False, True]
+    assert _layout_topics() <= topics, f"the layout reads topics the file lacks: {_layout_topics() - topics}"
+
+
+def test_an_unscored_imagined_replay_has_no_reflector_channel_and_scores_need_eta(tmp_path, make_ep):
+    ep = make_ep(T=4, cameras=("agentview",))
+    path = mcap_io.write_imagined_episode(tmp_path / "r.mcap", ep)
+    assert mcap_io.read_reflector_scores(path) == {}
+    with pytest.raises(CorruptEpisodeError, match="real_episode"):
+        read_episode(path, prefix="/real")
+    with pytest.raises(ValueError, match="eta"):
+        mcap_io.write_imagined_episode(tmp_path / "s.mcap", ep, {0: 0.3})

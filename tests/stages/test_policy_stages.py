@@ -8,6 +8,7 @@ from stages.evaluate.run import run as evaluate
 from stages.train_policy.run import run as train_policy
 from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.manifest import ArtefactError, Manifest
+from worldenv_core.report import success_table
 from worldenv_core.stage import ConfigError, compose_config
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
@@ -79,3 +80,21 @@ def test_evaluate_without_a_policy_names_the_missing_stage(tmp_path):
         evaluate(cfg("evaluate", tmp_path, "init_states=1", "progress=false"))
     with pytest.raises(ConfigError, match="termination must be one of oracle, fixed"):
         evaluate(cfg("evaluate", tmp_path, "termination=never"))
+
+
+def test_evaluate_on_another_registered_suite_with_the_same_tasks(experiment):
+    exp, _, _ = experiment
+    own = Manifest(exp).latest("evaluate", task="tiny", termination="fixed")
+    out = evaluate(cfg("evaluate", exp, "eval_suite=libero_object_lan", "eval_max_steps=24", "termination=fixed",
+                       "init_states=1", "workers=1", "progress=false", "videos_per_task=0"))
+    assert out["suite"] == "libero_object_lan" and out["max_steps"] == 24 and out["episodes"] == 1
+    (ep,) = json.loads((Path(out["report_dir"]) / "episodes.json").read_text())
+    assert ep["steps"] == 24
+    m = Manifest(exp)
+    rec = m.latest("evaluate", task="tiny", eval_suite="libero_object_lan")
+    assert rec.tags["termination"] == "fixed"
+    report = (exp / "report" / "report.md").read_text()
+    assert "## Evaluated on other suites" in report and "| sft | libero_object_lan | fixed | 24 |" in report
+    # the task's own table still shows its own suite's evaluation
+    _, cells = success_table(m, "tiny")
+    assert own.id != rec.id and cells[("sft", "fixed")]["suite"] == "libero_object"

@@ -3,11 +3,13 @@ LOOP iterations in imagination, real-simulator evaluation, resume, and bad setti
 from pathlib import Path
 
 import pytest
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from stages.post_train_loop.run import run as post_train_loop
 from stages.train_policy.run import run as train_policy
 from stages.train_reflector.run import run as train_reflector
 from stages.train_worldsim.run import run as train_worldsim
+from worldenv_core.data.mcap_io import read_episode, read_reflector_scores
 from worldenv_core.manifest import Manifest
 from worldenv_core.models.policy import load_policy
 from worldenv_core.models.reflector import load_reflector
@@ -54,6 +56,18 @@ def test_loop_records_a_post_trained_policy_with_its_real_success_curve(trained)
     # and in imagination, on fixed contexts and noise: SFT (0) vs the evaluation points
     assert set(metrics["imagined_reward"]) == set(metrics["imagined_success"]) == {"0", "2"}
     assert all(0.0 <= v <= 1.0 for v in [*metrics["imagined_reward"].values(), *metrics["imagined_success"].values()])
+    # a sample of imagined rollouts at iteration 0 and at the evaluation, as MCAP, in the manifest
+    imagined = sorted(m.root / f.path for f in rec.files("imagined"))
+    assert {p.parent.name for p in imagined} == {"iter_0000", "iter_0002"} and len(imagined) == 8  # 2 x (2 contexts x 2)
+    ep = read_episode(imagined[0])
+    assert ep.meta.source == "imagined" and ep.meta.extra["iteration"] == "0" and 0 < ep.length <= 16
+    assert 0 in read_reflector_scores(imagined[0])
+    # the curves in TensorBoard: training per iteration, the evaluations with the imagined-vs-real gap
+    acc = EventAccumulator(str(files["training.png"].parent / "tensorboard"))
+    acc.Reload()
+    tags = set(acc.Tags()["scalars"])
+    assert {"train/mean_reward", "train/approx_kl", "eval/real_success", "eval/imagined_real_gap"} <= tags
+    assert [e.step for e in acc.Scalars("eval/real_success")] == [0, 2]
 
 
 def test_loop_resumes_and_rejects_bad_settings(trained):

@@ -1,9 +1,12 @@
 """train_worldsim on the tiny task: manifest inputs, checkpoint, fidelity report, resume, errors."""
 import json
 
+import numpy as np
+
 import pytest
 
 from stages.train_worldsim.run import run as train_worldsim
+from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.manifest import Manifest
 from worldenv_core.models.checkpoint import load_model
 from worldenv_core.stage import ConfigError, compose_config
@@ -32,6 +35,15 @@ def test_train_worldsim_records_checkpoint_fidelity_and_resumes(demo_experiment)
     files = {p.name: p for p in m.resolve(rec)}
     assert {"model.safetensors", "config.json", "fidelity.json", "fidelity.md", "losses.png"} <= set(files)
     assert any(name.startswith("real_vs_imagined") for name in files)
+    # the held-out episodes replayed by the world model, the real ones beside them (Foxglove)
+    replays = [m.root / f.path for f in rec.files("imagined")]
+    assert replays and all(p.name.startswith("heldout_") for p in replays)
+    imagined, real = read_episode(replays[0]), read_episode(replays[0], prefix="/real")
+    assert imagined.meta.source == "imagined" and real.meta.source == "expert"
+    assert np.array_equal(imagined.actions, real.actions) and imagined.num_frames == real.num_frames
+    assert np.array_equal(imagined.images["agentview"][0], real.images["agentview"][0])  # the same start
+    tb = next((p for p in files.values() if p.name == "model.safetensors")).parent.parent / "tensorboard"
+    assert list(tb.glob("events.out.tfevents.*")), "training curves go to TensorBoard by default"
     report = json.loads(files["fidelity.json"].read_text())
     assert set(report["fidelity"]) == {"8", "16"} and report["fidelity"]["8"]["n"] == 1
     for key in ("model_psnr", "copy_psnr", "model_ssim", "copy_ssim", "plain_psnr", "plain_ssim"):  # detail transfer on
