@@ -5,9 +5,12 @@ key or file and the fix, exit status 2, no traceback. A real bug still shows its
 from __future__ import annotations
 
 import os
+import shutil
 import sys
 from contextlib import contextmanager
+from pathlib import Path
 
+from hydra.types import RunMode
 from omegaconf.errors import MissingMandatoryValue
 
 from worldenv_core.data.mcap_io import CorruptEpisodeError
@@ -37,4 +40,39 @@ def user_errors():
         if os.environ.get("WORLDENV_TRACEBACK"):
             raise
         print(f"error: {one_line(e)}", file=sys.stderr, flush=True)
+        _remove_empty_run_dir()
         raise SystemExit(EXIT_USER_ERROR) from None
+
+
+def _remove_empty_run_dir() -> None:
+    """A run refused before it did anything leaves no Hydra run folder behind (one holding only
+    Hydra's own `.hydra/` and log), nor the parents that were made only for it."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized() or HydraConfig.get().mode == RunMode.MULTIRUN:
+        return
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    if not run_dir.is_dir() or any(p.name != ".hydra" and p.suffix != ".log" for p in run_dir.iterdir()):
+        return
+    shutil.rmtree(run_dir, ignore_errors=True)
+    for parent in list(run_dir.parents)[:3]:  # hydra/<stage>/, hydra/, the experiment dir: each only if empty
+        try:
+            parent.rmdir()
+        except OSError:
+            break
+
+
+MULTIRUN_FLAGS = ("-m", "--multirun")
+
+
+def multirun_flag_first(argv: list[str]) -> list[str]:
+    """Hydra's argument parser takes `-m` only before the overrides (`... +task=x -m a=1,2` fails
+    with "unrecognized arguments"); move it to the front so it works anywhere on the line."""
+    flags = [a for a in argv[1:] if a in MULTIRUN_FLAGS]
+    return [argv[0], *flags[:1], *(a for a in argv[1:] if a not in MULTIRUN_FLAGS)]
+
+
+def launch(main) -> None:
+    """A stage's `if __name__ == "__main__":` body: the Hydra main with `-m` accepted anywhere."""
+    sys.argv = multirun_flag_first(sys.argv)
+    main()

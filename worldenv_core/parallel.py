@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 import multiprocessing as mp
 import os
+import sys
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
@@ -22,7 +23,22 @@ def default_workers() -> int:
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
 
 
-def _init_worker() -> None:
+def _die_with_parent(parent_pid: int | None) -> None:
+    """Linux: the kernel kills this worker when the process that started it dies (even by
+    SIGKILL), so no orphan goes on writing episodes after its parent is gone."""
+    if parent_pid is None or not sys.platform.startswith("linux"):
+        return
+    import ctypes
+    import signal
+
+    libc = ctypes.CDLL(None, use_errno=True)
+    libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    if os.getppid() != parent_pid:  # the parent died before the line above took effect
+        os._exit(1)
+
+
+def _init_worker(parent_pid: int | None = None) -> None:
+    _die_with_parent(parent_pid)
     # Episodes are the unit of parallelism; nested BLAS/torch threads would only fight over cores.
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     os.environ.setdefault("MKL_NUM_THREADS", "1")
@@ -75,7 +91,8 @@ def run_jobs(
 def _pool_results(fn, jobs, workers) -> Iterator[Any]:
     # spawn, not fork: MuJoCo/EGL contexts and torch threads do not survive a fork safely.
     ctx = mp.get_context("spawn")
-    with ctx.Pool(processes=min(workers, len(jobs)), initializer=_init_worker, maxtasksperchild=None) as pool:
+    with ctx.Pool(processes=min(workers, len(jobs)), initializer=_init_worker, initargs=(os.getpid(),),
+                  maxtasksperchild=None) as pool:
         yield from pool.imap_unordered(fn, jobs, chunksize=1)
 
 

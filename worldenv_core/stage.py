@@ -114,10 +114,16 @@ POLICY_SOURCES = {"sft": "train_policy", "post_trained": "post_train_loop"}
 def resolve_checkpoint(stage_run, ref, producer: str, task: str, scale: str) -> str:
     """A model checkpoint folder: `ref` given as a folder, as a manifest record id, or (ref None)
     the latest `producer` record of this task and scale. The record becomes the run's input."""
-    from pathlib import Path as _Path
+    from worldenv_core.models.checkpoint import CONFIG, WEIGHTS, verify_checkpoint
 
-    if ref and _Path(str(ref)).is_dir():
-        return str(_Path(str(ref)).resolve())
+    if ref and Path(str(ref)).is_dir():
+        folder = verify_checkpoint(Path(str(ref)).resolve())
+        for name in (WEIGHTS, CONFIG):  # what was used, by content, since no record vouches for it
+            stage_run.record.input_files.append(stage_run.manifest.artefact(folder / name, kind="checkpoint"))
+        return str(folder)
+    if ref and ("/" in str(ref) or str(ref).startswith(".") or Path(str(ref)).exists()):
+        raise ConfigError(f"no checkpoint folder at {ref}: give a folder holding {CONFIG} and {WEIGHTS}, a manifest "
+                          f"record id, or leave it unset for the latest {producer}")
     record = stage_run.manifest.get(ref) if ref else stage_run.manifest.latest(producer, task=task, scale=scale)
     return str(stage_run.use(record, kind="checkpoint")[0].parent)
 
@@ -134,8 +140,9 @@ def resolve_policy(cfg: DictConfig, stage_run) -> str:
 # Scale settings that choose how a result is evaluated, not what is trained (each stage's own
 # copy, e.g. train_reflector's eta_folds, is left out of its work-dir name as well).
 EVALUATION_ONLY_SCALE_KEYS = ("reflector_eta_folds",)
-# Settings that only choose how a run is watched: changing them continues the same run.
-NOT_NAMING_WORK_DIRS = ("logger",)
+# Settings that do not define what is trained: how a run is watched, and where the experiment
+# lives (work dirs sit inside it, so a moved or copied experiment finds its finished work).
+NOT_NAMING_WORK_DIRS = ("logger", "experiment_dir")
 
 
 def work_dir(experiment_dir, stage: str, config: dict, inputs: list[str]) -> Path:

@@ -7,6 +7,7 @@ import json
 import logging
 import random
 import shutil
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -74,21 +75,35 @@ class Checkpoints:
         return path
 
     def restore(self, model, optimizers: dict) -> tuple[int, list[dict]]:
-        """Load the newest checkpoint into `model` and `optimizers`; (0, []) when there is none."""
-        last = self.last
-        if last is None or not (last / TRAIN_STATE).exists():
-            return 0, []
-        from safetensors.torch import load_file
+        """Load the newest readable checkpoint into `model` and `optimizers`; (0, []) when there is
+        none. A damaged one (truncated or garbled weights or state) is moved aside with a warning and
+        the one before it is tried, so a re-run repairs a damaged work dir instead of failing on it."""
+        candidates = sorted((p for p in self.dir.iterdir() if p.name.isdigit()), reverse=True) if self.dir.is_dir() else []
+        for ckpt in candidates:
+            if not (ckpt / TRAIN_STATE).exists():
+                continue
+            try:
+                return self._load(ckpt, model, optimizers)
+            except Exception as e:  # noqa: BLE001 - whatever a damaged file raises, the next one is tried
+                aside = ckpt.with_name(f"{ckpt.name}.damaged-{time.strftime('%Y%m%dT%H%M%S')}")
+                ckpt.rename(aside)
+                log.warning("checkpoint %s is damaged (%s: %s); moved to %s, trying the one before it",
+                            ckpt, type(e).__name__, str(e)[:200], aside.name)
+        return 0, []
 
-        model.load_state_dict(load_file(str(last / "model.safetensors")))
-        state = torch.load(last / TRAIN_STATE, weights_only=False)
+    def _load(self, ckpt: Path, model, optimizers: dict) -> tuple[int, list[dict]]:
+        from worldenv_core.models.checkpoint import load_weights
+
+        weights = load_weights(ckpt / "model.safetensors")
+        state = torch.load(ckpt / TRAIN_STATE, weights_only=False)
+        model.load_state_dict(weights)
         for k, o in optimizers.items():
             o.load_state_dict(state["optimizers"][k])
         torch.set_rng_state(state["rng"]["torch"])
         np.random.set_state(state["rng"]["numpy"])
         random.setstate(state["rng"]["python"])
         self.extra = state.get("extra", {})
-        log.info("resumed from %s (step %d)", last, state["step"])
+        log.info("resumed from %s (step %d)", ckpt, state["step"])
         return int(state["step"]), list(state["history"])
 
 

@@ -18,7 +18,7 @@ from worldenv_core.envs.collection import (
     ExpertEpisodeJob, ExpertEvalJob, PolicyEpisodeJob, collect_expert_episode, collect_policy_episode,
     evaluate_expert_task, summarise_expert_eval,
 )
-from worldenv_core.data.mcap_io import read_info
+from worldenv_core.data.mcap_io import read_info, set_aside_damaged
 from worldenv_core.envs.tasks import get_task, num_tasks, resolve_task_ids
 from worldenv_core.manifest import StageRun, config_hash
 from worldenv_core.parallel import run_jobs
@@ -118,6 +118,8 @@ def _collect(cfg: DictConfig, task_ids: list[int], stage: StageRun) -> dict:
             ExpertEpisodeJob(task_id=t, index=k, path=path(t, k), max_attempts=cfg.max_attempts, **common)
             for t in task_ids for k in range(cfg.episodes_per_task)]
     out_dir.mkdir(parents=True, exist_ok=True)
+    stage.lock(out_dir)  # one collection at a time writes this folder
+    repaired = set_aside_damaged(stage.manifest, [Path(j.path) for j in jobs])
     log.info("collecting %d %s episodes of %s (%d tasks) into %s", len(jobs), cfg.source, task.suite,
              len(task_ids), out_dir)
     t0 = time.perf_counter()
@@ -140,7 +142,7 @@ def _collect(cfg: DictConfig, task_ids: list[int], stage: StageRun) -> dict:
         "kept_frames": frames, "wall_s": round(wall, 2),
         "kept_frames_per_s": round(frames / wall, 2) if kept else None,
         "render_s": round(sum(r.get("render_s", 0.0) for r in kept), 2),
-        "episode_dir": str(out_dir),
+        "episode_dir": str(out_dir), "recollected_damaged": repaired,
     }
     if cfg.source == "policy":  # over every episode of the collection, resumed ones included
         done = [read_info(r["path"]).meta.success for r in results if r["status"] in ("kept", "exists")]

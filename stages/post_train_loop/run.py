@@ -56,8 +56,7 @@ def with_gap(entry: dict) -> dict:
 
 def validate(cfg: DictConfig) -> None:
     require_task(cfg)
-    for key in ("rl.iterations", "rl.contexts_per_iteration", "rl.n_rollouts", "rl.ppo_epochs", "rl.minibatch",
-                "rl.horizon"):
+    for key in ("rl.iterations", "rl.contexts_per_iteration", "rl.ppo_epochs", "rl.minibatch", "rl.horizon"):
         positive_int(cfg, key)
     positive_int(cfg, "eval.every", allow_zero=True)
     positive_int(cfg, "eval.init_states")
@@ -65,7 +64,7 @@ def validate(cfg: DictConfig) -> None:
     positive_int(cfg, "eval.record_contexts", allow_zero=True)
     if cfg.eval.imagined_contexts and cfg.eval.imagined_rollouts < 2:
         raise ConfigError(f"eval.imagined_rollouts must be at least 2, got {cfg.eval.imagined_rollouts}")
-    if cfg.rl.n_rollouts < 2:
+    if not isinstance(cfg.rl.n_rollouts, int) or cfg.rl.n_rollouts < 2:
         raise ConfigError(f"rl.n_rollouts must be at least 2 (the RLOO baseline averages the other N - 1), "
                           f"got {cfg.rl.n_rollouts}")
     try:
@@ -168,6 +167,7 @@ def run(cfg: DictConfig) -> dict:
         # not by how it is evaluated or shown: changing eval.* or progress continues the same run.
         work = work_dir(cfg.experiment_dir, "post_train_loop",
                         {k: v for k, v in config.items() if k not in ("eval", "progress")}, stage.work_inputs())
+        stage.lock(work)  # one run at a time trains into a work dir
         policy_cfg = read_config(policy_path)["model"]
         optimizer = torch.optim.Adam(policy_param_groups(policy, rl.lr_backbone, rl.lr_heads))
         ckpts = Checkpoints(work)

@@ -70,6 +70,7 @@ def run(cfg: DictConfig) -> dict:
                                                                             scale=cfg.scale.name, source="expert")
         paths = select_demos(stage.use(demos, kind="episodes"), cfg.demos_per_task, list(task.task_ids or []) or None)
         work = work_dir(cfg.experiment_dir, "train_policy", config, stage.work_inputs())
+        stage.lock(work)  # one run at a time trains into a work dir
         data = EpisodeDataset(paths, cameras=list(task.cameras), mode="chunk", chunk=task.chunk, future_frames=False)
         stats = data.compute_stats()
         model_cfg = OmegaConf.to_container(cfg.policy, resolve=True)

@@ -82,6 +82,7 @@ def run(cfg: DictConfig) -> dict:
         # named by what defines the training and its inputs, not by how it is evaluated, shown or
         # how eta is chosen: changing imagined.*, plots or eta_folds re-evaluates a finished run
         work = work_dir(cfg.experiment_dir, "train_reflector", key, stage.work_inputs())
+        stage.lock(work)  # one run at a time trains into a work dir
         encoder = InstructionEncoder()
         t0 = time.perf_counter()
         model, model_cfg, meta, history = fit(cfg, episodes + (dreamed or []), work, device, encoder,

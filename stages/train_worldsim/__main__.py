@@ -3,7 +3,7 @@ import hydra
 from omegaconf import DictConfig
 
 from stages.train_worldsim.run import run
-from worldenv_core.cli import user_errors
+from worldenv_core.cli import launch, user_errors
 
 
 @hydra.main(config_path="../../conf", config_name="train_worldsim", version_base="1.3")
@@ -13,4 +13,4 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    launch(main)

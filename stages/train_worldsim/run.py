@@ -75,6 +75,7 @@ def run(cfg: DictConfig) -> dict:
     with StageRun(manifest, "train_worldsim", tags, config) as stage:
         _, held, episodes, held_eps = load_split(manifest, stage, cfg)
         work = work_dir(cfg.experiment_dir, "train_worldsim", config, stage.work_inputs())
+        stage.lock(work)  # one run at a time trains into a work dir
         cameras = task_cameras(cfg, sorted({ep.meta.task_id for ep in episodes + held_eps}))
         kinematics = NextStateModel.fit(episodes)
         log.info("kinematics fitted on %d episodes: %s", len(episodes), kinematics)

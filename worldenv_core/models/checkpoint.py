@@ -10,6 +10,7 @@ written under a temporary name and renamed when complete.
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -19,6 +20,12 @@ from safetensors.torch import load_file, save_file
 
 FORMAT = 1
 WEIGHTS, CONFIG = "model.safetensors", "config.json"
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 class CheckpointError(ValueError):
@@ -32,10 +39,36 @@ def save_model(path: str | Path, model: torch.nn.Module, model_config: dict, met
     tmp.mkdir(parents=True)
     state = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
     save_file(state, str(tmp / WEIGHTS))
+    os.chmod(tmp / WEIGHTS, 0o666 & ~_umask())  # safetensors writes 0600; checkpoints are shared like any output
     (tmp / CONFIG).write_text(json.dumps({"format": FORMAT, "model": model_config, "meta": meta or {}}, indent=2))
     if path.exists():
         shutil.rmtree(path)
     tmp.rename(path)
+    return path
+
+
+def load_weights(file: str | Path, map_location: str = "cpu") -> dict[str, torch.Tensor]:
+    """A safetensors file, verified: its header and every tensor readable, every float finite.
+    A truncated or overwritten file is an error naming it, never weights with NaN in them."""
+    file = Path(file)
+    try:
+        state = load_file(str(file), device=map_location)
+    except Exception as e:  # noqa: BLE001 - safetensors raises its own error types for bad bytes
+        raise CheckpointError(f"{file} is not a readable safetensors file ({type(e).__name__}: {e}); the checkpoint "
+                              "is damaged: re-run the stage that wrote it, or give another checkpoint") from None
+    bad = [k for k, v in state.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    if bad:
+        raise CheckpointError(f"{file} holds non-finite values (NaN or inf) in {len(bad)} tensor(s), e.g. {bad[:3]}: "
+                              "the file is damaged or the training diverged; re-run the stage that wrote it")
+    return state
+
+
+def verify_checkpoint(path: str | Path) -> Path:
+    """A checkpoint folder given by hand (not found through the manifest): its config readable and
+    its weights verified (`load_weights`). Returns the folder."""
+    path = Path(path)
+    read_config(path)
+    load_weights(path / WEIGHTS)
     return path
 
 
@@ -45,7 +78,11 @@ def read_config(path: str | Path) -> dict:
         path = path.parent
     if not (path / CONFIG).exists() or not (path / WEIGHTS).exists():
         raise CheckpointError(f"{path} is not a checkpoint folder (needs {CONFIG} and {WEIGHTS})")
-    cfg = json.loads((path / CONFIG).read_text())
+    try:
+        cfg = json.loads((path / CONFIG).read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise CheckpointError(f"{path / CONFIG} is not readable JSON ({e}): the checkpoint is damaged; re-run the "
+                              "stage that wrote it") from None
     if cfg.get("format") != FORMAT:
         raise CheckpointError(f"{path}: checkpoint format {cfg.get('format')!r}, this code reads {FORMAT}")
     return cfg
@@ -64,7 +101,7 @@ def load_model(path: str | Path, expect: dict | None = None, map_location: str =
         if have != want:
             raise CheckpointError(f"checkpoint {path} was made for {key}={have!r}, but this run needs {key}={want!r}")
     model = instantiate(cfg["model"], _convert_="all")
-    missing, unexpected = model.load_state_dict(load_file(str(path / WEIGHTS), device=map_location), strict=False)
+    missing, unexpected = model.load_state_dict(load_weights(path / WEIGHTS, map_location), strict=False)
     if missing or unexpected:
         raise CheckpointError(f"{path}: weights do not fit the model (missing {missing[:5]}, unexpected {unexpected[:5]})")
     return model, cfg
