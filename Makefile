@@ -12,7 +12,7 @@ export MUJOCO_GL ?= egl
 export HF_HUB_OFFLINE := 1
 export TOKENIZERS_PARALLELISM := false
 
-.PHONY: setup test test-fast smoke pipeline bench expert-table tensorboard clean
+.PHONY: setup test test-fast faults smoke pipeline bench expert-table tensorboard clean
 
 setup: $(STAMP)
 
@@ -33,6 +33,10 @@ $(STAMP): pyproject.toml
 
 test: setup
 	$(PY) -m pytest -q tests
+
+# The fault suite alone (also part of `make test`), with its matrix: case, outcome, seconds.
+faults: setup
+	$(PY) -m pytest -q -m fault tests --fault-matrix
 
 test-fast: setup
 	$(PY) -m pytest -q -m "not sim and not slow" tests

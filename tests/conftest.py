@@ -50,3 +50,47 @@ def _synthetic_episodes(seed, n):
 def synthetic_episodes():
     """(seed, n) -> n synthetic 'red'/'blue' square episodes, two thirds of them succeeding."""
     return _synthetic_episodes
+
+
+# Stage and fault tests share one real expert collection of the tiny task (collecting costs ~1 min):
+# 2 demos that go on for 8 steps after the oracle's success (the reflector's positive frames).
+@pytest.fixture(scope="session")
+def _tiny_demos(tmp_path_factory):
+    from stages.collect.run import run as collect
+    from worldenv_core.stage import compose_config
+
+    exp = tmp_path_factory.mktemp("demos")
+    collect(compose_config("collect", ["+task=tiny", "scale=tiny", f"experiment_dir={exp}", f"data_dir={exp / 'data'}",
+                                       "episodes_per_task=2", "post_success_steps=8", "workers=1", "progress=false", "lerobot_export=false"]))
+    return exp
+
+
+@pytest.fixture(scope="module")
+def demo_experiment(_tiny_demos, tmp_path_factory):
+    """A fresh experiment dir holding a manifest with 2 expert demos of the tiny task."""
+    import shutil
+
+    exp = tmp_path_factory.mktemp("exp") / "experiment"
+    shutil.copytree(_tiny_demos, exp)
+    return exp
+
+
+
+# ---- `make faults`: the fault matrix as a table ------------------------------------------------
+
+
+def pytest_addoption(parser):
+    parser.addoption("--fault-matrix", action="store_true", help="print the fault suite as a table")
+
+
+def pytest_terminal_summary(terminalreporter, config):
+    if not config.getoption("--fault-matrix"):
+        return
+    rows = [r for outcome in ("passed", "failed", "skipped") for r in terminalreporter.stats.get(outcome, [])
+            if r.when == "call" and "test_faults.py" in r.nodeid]
+    terminalreporter.write_line("")
+    terminalreporter.write_line("| fault case | outcome | seconds |")
+    terminalreporter.write_line("|---|---|---|")
+    for r in sorted(rows, key=lambda r: r.nodeid):
+        case = r.nodeid.split("::", 1)[1].removeprefix("test_").replace("_", " ")
+        terminalreporter.write_line(f"| {case} | {r.outcome} | {r.duration:.1f} |")

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import DataLoader, Dataset, Subset
 
 from worldenv_core.models.checkpoint import save_model
 
@@ -28,16 +28,20 @@ def pick_device(name: str = "auto") -> torch.device:
 
 
 def batches(dataset: Dataset, batch_size: int, seed: int, start_step: int = 0, num_workers: int = 0) -> Iterator[dict]:
-    """Endless shuffled batches. Epoch e is shuffled with seed + e, so a resumed run at step s
-    sees the same batches an uninterrupted run would (up to the position inside the epoch)."""
-    per_epoch = max(1, len(dataset) // batch_size)
-    epoch = start_step // per_epoch
+    """Endless shuffled batches. Epoch e is a permutation drawn with seed + e, and a run resumed at
+    step s starts at batch s of that order, so it sees exactly the batches an uninterrupted run
+    would (resume is bit-identical). The loader gets its own generator: creating one draws a seed,
+    which must not come from the global RNG that augmentation and dropout use."""
+    n = len(dataset)
+    per_epoch = max(1, n // batch_size)
+    epoch, skip = divmod(start_step, per_epoch)
     while True:
         g = torch.Generator().manual_seed(seed + epoch)
-        loader = DataLoader(dataset, batch_size=batch_size, shuffle=True, drop_last=len(dataset) >= batch_size,
-                            generator=g, num_workers=num_workers)
+        order = torch.randperm(n, generator=g)[skip * batch_size:].tolist()
+        loader = DataLoader(Subset(dataset, order), batch_size=batch_size, shuffle=False,
+                            drop_last=n >= batch_size, generator=g, num_workers=num_workers)
         yield from loader
-        epoch += 1
+        epoch, skip = epoch + 1, 0
 
 
 class Checkpoints:
