@@ -32,7 +32,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 test: setup
-	$(PY) -m pytest -q tests
+	$(PY) -m pytest -q -m "not fault_full" tests
 
 # The fault suite alone (also part of `make test`), with its matrix: case, outcome, seconds.
 faults: setup

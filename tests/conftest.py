@@ -92,5 +92,6 @@ def pytest_terminal_summary(terminalreporter, config):
     terminalreporter.write_line("| fault case | outcome | seconds |")
     terminalreporter.write_line("|---|---|---|")
     for r in sorted(rows, key=lambda r: r.nodeid):
-        case = r.nodeid.split("::", 1)[1].removeprefix("test_").replace("_", " ")
+        name, _, param = r.nodeid.split("::", 1)[1].partition("[")
+        case = name.removeprefix("test_").replace("_", " ") + (f" [{param}" if param else "")
         terminalreporter.write_line(f"| {case} | {r.outcome} | {r.duration:.1f} |")

@@ -1,7 +1,8 @@
 """The fault suite: each fault injected as it happens in practice, and what must follow: a clear
 one-line error or a repair by the command the error advises, artefacts identical to an
 uninterrupted run, no record lost. `make test` runs every case; `make faults` runs them alone and
-prints the matrix (case, outcome, seconds)."""
+prints the matrix (case, outcome, seconds), with the heavier `fault_full` cases (kill -9 of every
+training stage) that `make test` leaves out."""
 
 import json
 import os
@@ -226,7 +227,8 @@ def test_a_damaged_or_deleted_episode_is_recollected_bit_identical_by_rerunning_
         ep.write_bytes(ep.read_bytes()[: ep.stat().st_size // 2])
     else:
         ep.unlink()
-    with pytest.raises(ArtefactError, match="stale" if damage == "truncate" else "missing on disk"):
+    with pytest.raises(ArtefactError, match=("stale" if damage == "truncate" else "missing on disk")
+                       + r".*`python -m stages.collect \+task=tiny scale=tiny source=expert post_success_steps=8"):
         Manifest(exp).resolve(Manifest(exp).latest("collect", source="expert"))
     from stages.collect.run import run as collect
 
@@ -249,55 +251,123 @@ def test_a_stale_checkpoint_is_repaired_by_rerunning_its_stage(demo_experiment):
     weights = next(p for p in m.resolve(m.latest("train_policy")) if p.name == "model.safetensors")
     original = sha256_file(weights)
     weights.write_bytes(weights.read_bytes()[:1000])
-    with pytest.raises(ArtefactError, match="stale.*re-run the stage"):
+    with pytest.raises(ArtefactError, match=r"stale.*re-running the stage .*`python -m stages.train_policy "
+                                            r"\+task=tiny scale=tiny experiment_dir="):
         m.resolve(m.latest("train_policy"))
     again = train_policy(cfg("train_policy", demo_experiment, *TINY_POLICY))  # the advised repair
     assert again["train_wall_s"] < 5 and sha256_file(weights) == original
     m.resolve(m.latest("train_policy"))
 
 
-@pytest.mark.sim
-@pytest.mark.slow
-def test_a_training_killed_at_a_random_point_resumes_to_identical_weights(_tiny_demos, tmp_path):
-    """kill -9 of train_policy after a random number of checkpoints, then the same command again:
-    the weights are those of an uninterrupted run, bit for bit."""
+WORLDSIM = ["expert_only=true", "ae.steps=30", "flow.steps=30", "ae.batch_size=4", "flow.batch_size=4",
+            "holdout_every=2", "log_every=5", "checkpoint_every=10", "worldsim.ae_widths=[8,16]", "worldsim.width=16",
+            "worldsim.map_channels=4", "fidelity.horizons=[8]", "fidelity.starts_per_episode=1", "fidelity.videos=0"]
+REFLECTOR = ["expert_only=true", "train.steps=60", "train.batch_size=4", "train.log_every=5",
+             "train.checkpoint_every=10", "train.mine.every=10", "holdout_every=2", "reflector.d_model=16",
+             "reflector.layers=1", "reflector.heads=2", "reflector.frame_encoder.widths=[8,16]",
+             "reflector.frame_encoder.keypoints=4", "plots=0", "imagined.enabled=false", "eta_folds=0"]
+LOOP = ["expert_only=true", "rl.iterations=8", "rl.contexts_per_iteration=1", "rl.n_rollouts=2", "rl.horizon=16",
+        "rl.minibatch=2", "eval.every=0", "eval.imagined_contexts=0", "eval.record_contexts=0", "progress=false"]
+KILLS = {  # stage -> (its overrides, steps between checkpoints, how many there are)
+    "train_policy": ([o for o in TINY_POLICY if not o.startswith(("train.steps", "scale_head.steps"))]
+                     + ["train.steps=60", "scale_head.steps=20"], 10, 8),
+    "train_worldsim": (WORLDSIM, 10, 6),
+    "train_reflector": (REFLECTOR, 10, 6),
+    "post_train_loop": (LOOP, 1, 8),
+}
+
+
+def _killed_at_random_and_resumed(stage: str, source: Path, tmp_path: Path) -> None:
+    """kill -9 of `stage` after a random number of checkpoints, then the same command again: the
+    weights are those of an uninterrupted run, bit for bit, and the killed run recorded nothing."""
+    overrides, every, count = KILLS[stage]
     straight, killed = tmp_path / "straight", tmp_path / "killed"
-    shutil.copytree(_tiny_demos, straight)  # the demos alone: no training of another test to find
-    shutil.copytree(_tiny_demos, killed)
-    longer = [o for o in TINY_POLICY if not o.startswith(("train.steps", "scale_head.steps"))]
-    args = ["stages.train_policy", "+task=tiny", "scale=tiny", *longer, "train.steps=60", "scale_head.steps=20"]
-    assert cli(*args, f"experiment_dir={straight}").returncode == 0
-    rng = np.random.default_rng()
-    stop_after = int(rng.integers(1, 6))  # checkpoints every 10 of 80 steps
+    shutil.copytree(source, straight)
+    shutil.copytree(source, killed)
+    args = [f"stages.{stage}", "+task=tiny", "scale=tiny", *overrides]
+    done = cli(*args, f"experiment_dir={straight}", timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    stop_after = int(np.random.default_rng().integers(1, count))
+    before = len(Manifest(killed).find(stage))
     proc = subprocess.Popen([sys.executable, "-m", *args, f"experiment_dir={killed}"], cwd=REPO,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.time() + 240
+    deadline = time.time() + 300
     while time.time() < deadline and proc.poll() is None:
-        steps = [int(p.name) for p in killed.glob("train_policy/*/checkpoints/[0-9]*[0-9]")]
-        if steps and max(steps) >= 10 * stop_after:
+        steps = [int(p.name) for p in killed.glob(f"{stage}/*/checkpoints/[0-9]*[0-9]")]
+        if steps and max(steps) >= every * stop_after:
             break
         time.sleep(0.05)
     assert proc.poll() is None, "the run ended before it could be killed"
     proc.send_signal(signal.SIGKILL)
     proc.wait()
-    assert not Manifest(killed).find("train_policy"), "a killed stage records nothing"
-    assert cli(*args, f"experiment_dir={killed}").returncode == 0
-    weights = [next(p for p in Manifest(e).resolve(Manifest(e).latest("train_policy")) if p.name == "model.safetensors")
+    assert len(Manifest(killed).find(stage)) == before, "a killed stage records nothing"
+    assert cli(*args, f"experiment_dir={killed}", timeout=600).returncode == 0
+    weights = [sorted(p for p in Manifest(e).resolve(Manifest(e).latest(stage)) if p.name == "model.safetensors")
                for e in (straight, killed)]
-    assert sha256_file(weights[0]) == sha256_file(weights[1])
+    assert [sha256_file(p) for p in weights[0]] == [sha256_file(p) for p in weights[1]]
 
 
 @pytest.mark.sim
 @pytest.mark.slow
-def test_a_copied_experiment_finds_its_finished_training(demo_experiment, tmp_path):
-    from stages.train_policy.run import run as train_policy
+def test_a_training_killed_at_a_random_checkpoint_resumes_to_identical_weights(_tiny_demos, tmp_path):
+    _killed_at_random_and_resumed("train_policy", _tiny_demos, tmp_path)  # the demos alone: nothing trained yet
 
-    first = train_policy(cfg("train_policy", demo_experiment, *TINY_POLICY))
-    copy = tmp_path / "moved" / "copy"
-    shutil.copytree(demo_experiment, copy)
-    again = train_policy(cfg("train_policy", copy, *TINY_POLICY))
-    assert again["train_wall_s"] < 5 and first["train_wall_s"] > 0  # found finished, nothing trained
-    m = Manifest(copy)
-    a, b = m.find("train_policy")[-2:]
-    assert {x.sha256 for x in a.files("checkpoint")} == {x.sha256 for x in b.files("checkpoint")}
-    assert all(not Path(x.path).is_absolute() for x in b.outputs)  # inside the experiment: relative
+
+@pytest.fixture(scope="module")
+def trained_for_loop(_tiny_demos, tmp_path_factory):
+    """The tiny demos with a policy, a world model and a reflector: what post_train_loop needs."""
+    exp = tmp_path_factory.mktemp("loop") / "experiment"
+    shutil.copytree(_tiny_demos, exp)
+    for stage, overrides in (("train_policy", TINY_POLICY), ("train_worldsim", WORLDSIM),
+                             ("train_reflector", REFLECTOR)):
+        out = cli(f"stages.{stage}", "+task=tiny", "scale=tiny", *overrides, f"experiment_dir={exp}", timeout=600)
+        assert out.returncode == 0, out.stderr[-2000:]
+    return exp
+
+
+@pytest.mark.fault_full
+@pytest.mark.sim
+@pytest.mark.slow
+@pytest.mark.parametrize("stage", ["train_worldsim", "train_reflector"])
+def test_every_training_stage_killed_at_a_random_checkpoint_resumes_identically(stage, _tiny_demos, tmp_path):
+    _killed_at_random_and_resumed(stage, _tiny_demos, tmp_path)
+
+
+@pytest.mark.fault_full
+@pytest.mark.sim
+@pytest.mark.slow
+def test_post_train_loop_killed_at_a_random_iteration_resumes_identically(trained_for_loop, tmp_path):
+    _killed_at_random_and_resumed("post_train_loop", trained_for_loop, tmp_path)
+
+
+@pytest.mark.sim
+@pytest.mark.slow
+def test_two_collections_at_once_one_runs_the_other_is_refused_naming_it(tmp_path):
+    args = ["stages.collect", "+task=tiny", "scale=tiny", f"experiment_dir={tmp_path}/exp", f"data_dir={tmp_path}/data",
+            "episodes_per_task=1", "workers=1", "lerobot_export=false", "progress=false"]
+    first = subprocess.Popen([sys.executable, "-m", *args], cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                             text=True)
+    deadline = time.time() + 120
+    while not list(tmp_path.glob("data/tiny/*/.lock")) and time.time() < deadline:
+        time.sleep(0.05)
+    second = cli(*args)
+    assert first.wait(timeout=300) == 0
+    assert second.returncode == EXIT_USER_ERROR, second.stderr
+    (line,) = second.stderr.strip().splitlines()
+    assert "collect into" in line and f"already running (pid {first.pid} on" in line
+    assert len(Manifest(tmp_path / "exp").find("collect")) == 1
+
+
+@pytest.mark.parametrize("override, needle", [
+    ("rl.n_rollouts=0", "rl.n_rollouts must be at least 2"),
+    ("rl.eta=2", "rl.eta (the reflector's success threshold) must be in [0, 1]"),
+    ("rl.epsilon=0", "rl.epsilon (the PPO clip) must be > 0"),
+    ("policy_from=./no/such/folder", "no checkpoint folder at ./no/such/folder"),
+], ids=["n_rollouts=0", "eta=2", "epsilon=0", "policy_from=missing path"])
+def test_bad_settings_are_refused_in_seconds_naming_the_key(tmp_path, override, needle):
+    from stages.post_train_loop.run import run as post_train_loop
+
+    t0 = time.perf_counter()
+    with pytest.raises((ConfigError, ArtefactError)) as e:
+        post_train_loop(cfg("post_train_loop", tmp_path, override))
+    assert needle in str(e.value) and time.perf_counter() - t0 < 30

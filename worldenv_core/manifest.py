@@ -35,6 +35,16 @@ class ArtefactError(RuntimeError):
     """A required artefact is missing from the manifest, missing on disk, or stale."""
 
 
+def rerun_command(record: "StageRecord", experiment_dir: Path) -> str:
+    """The command that re-runs a record's stage on its task, scale and source in its experiment."""
+    args = [f"python -m stages.{record.stage}"]
+    args += [f"+task={record.tags['task']}"] if "task" in record.tags else []
+    args += [f"{k}={record.tags[k]}" for k in ("scale", "source") if k in record.tags]
+    if record.stage == "collect" and "post_success_steps" in record.config:
+        args.append(f"post_success_steps={record.config['post_success_steps']}")
+    return "`" + " ".join([*args, f"experiment_dir={experiment_dir}"]) + "`"
+
+
 def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:
@@ -86,10 +96,7 @@ class Artefact:
         if not full.exists():
             raise ArtefactError(f"artefact {self.path} is recorded in the manifest but missing on disk ({full})")
         if full.stat().st_size != self.size or sha256_file(full) != self.sha256:
-            raise ArtefactError(
-                f"artefact {full} is stale: its content changed after the manifest recorded it; "
-                "re-run the stage that produced it"
-            )
+            raise ArtefactError(f"artefact {full} is stale: its content changed after the manifest recorded it")
         return full
 
 
@@ -201,9 +208,13 @@ class Manifest:
     def resolve(self, record: StageRecord, kind: str | None = None, verify: bool = True) -> list[Path]:
         """Absolute paths of a record's files (optionally of one kind), checked against their hashes."""
         files = record.files(kind)
-        if verify:
+        if not verify:
+            return [(self.root / a.path).resolve() for a in files]
+        try:
             return [a.verify(self.root) for a in files]
-        return [(self.root / a.path).resolve() for a in files]
+        except ArtefactError as e:
+            raise ArtefactError(f"{e}; repair it by re-running the stage that produced it: {rerun_command(record, self.root)} "
+                                f"(the settings of record {record.id}; finished work is kept, the damaged part redone)") from None
 
     # -- writing --------------------------------------------------------------------------
     def artefact(self, path: str | os.PathLike, kind: str = "") -> Artefact:
