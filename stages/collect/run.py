@@ -18,7 +18,8 @@ from worldenv_core.envs.collection import (
     ExpertEpisodeJob, ExpertEvalJob, PolicyEpisodeJob, collect_expert_episode, collect_policy_episode,
     evaluate_expert_task, summarise_expert_eval,
 )
-from worldenv_core.data.mcap_io import read_info, set_aside_damaged
+from worldenv_core.data.mcap_io import read_info
+from worldenv_core.data.selection import set_aside_damaged
 from worldenv_core.envs.tasks import get_task, num_tasks, resolve_task_ids
 from worldenv_core.manifest import StageRun, config_hash
 from worldenv_core.parallel import run_jobs

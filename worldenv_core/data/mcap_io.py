@@ -26,7 +26,6 @@ import contextlib
 import json
 import logging
 import os
-import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -547,38 +546,3 @@ def iter_episodes(paths_or_dir, on_error: str = "skip", **read_kwargs) -> Iterat
             continue
         yield ep
 
-
-def set_aside_damaged(manifest, paths: Iterable[str | os.PathLike]) -> int:
-    """Before a collection resumes: every existing episode file it would skip is checked, against
-    the sha256 a manifest record holds for it (any change is damage), or, if no record names it
-    yet (a run killed before recording), by reading it whole. A damaged file is moved aside
-    (`<name>.damaged-<time>`, kept for inspection) so the collection writes it again with the
-    same seed. Returns how many were set aside."""
-    from worldenv_core.manifest import sha256_file
-
-    recorded = {}
-    for record in manifest.records():
-        if record.stage == "collect":
-            for art in record.files("episodes"):
-                recorded[str((manifest.root / art.path).resolve())] = art.sha256
-    stamp = time.strftime("%Y%m%dT%H%M%S")
-    moved = 0
-    for path in map(Path, paths):
-        if not path.exists():
-            continue
-        sha = recorded.get(str(path.resolve()))
-        if sha is not None:
-            problem = None if sha256_file(path) == sha else "its content changed after the manifest recorded it"
-        else:
-            try:
-                read_episode(path)
-                problem = None
-            except CorruptEpisodeError as e:
-                problem = e.reason
-        if problem:
-            aside = path.with_name(f"{path.name}.damaged-{stamp}")
-            os.replace(path, aside)
-            log.warning("%s is damaged (%s): moved to %s; collecting it again with the same seed", path, problem,
-                        aside.name)
-            moved += 1
-    return moved

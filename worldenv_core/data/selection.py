@@ -3,13 +3,22 @@
 The world simulator and the reflector read the same episodes (expert demos plus the policy's
 Laplace-perturbed rollouts) and split them by the same rule, so with the same `holdout_every`
 they hold out the same episodes: imagined evaluation then replays episodes neither model saw.
+`set_aside_damaged` checks the episodes a resumed collection would skip, so a damaged one is
+collected again.
 """
 
 from __future__ import annotations
 
+import logging
+import os
+import time
+from collections.abc import Iterable
 from pathlib import Path
 
-from worldenv_core.manifest import ArtefactError, Manifest, StageRun
+from worldenv_core.data.mcap_io import CorruptEpisodeError, read_episode
+from worldenv_core.manifest import ArtefactError, Manifest, StageRun, sha256_file
+
+log = logging.getLogger(__name__)
 
 
 class MissingEpisodesError(ArtefactError):
@@ -67,3 +76,37 @@ def load_split(manifest: Manifest, stage: StageRun, cfg) -> tuple[list[Path], li
         raise ConfigError(f"only {len(paths)} episodes: none left for training after holding out {len(held)}")
     read = lambda ps: [read_episode(p, cameras=[cfg.camera]) for p in ps]  # noqa: E731
     return train, held, read(train), read(held)
+
+
+def set_aside_damaged(manifest, paths: Iterable[str | os.PathLike]) -> int:
+    """Before a collection resumes: every existing episode file it would skip is checked, against
+    the sha256 a manifest record holds for it (any change is damage), or, if no record names it
+    yet (a run killed before recording), by reading it whole. A damaged file is moved aside
+    (`<name>.damaged-<time>`, kept for inspection) so the collection writes it again with the
+    same seed. Returns how many were set aside."""
+    recorded = {}
+    for record in manifest.records():
+        if record.stage == "collect":
+            for art in record.files("episodes"):
+                recorded[str((manifest.root / art.path).resolve())] = art.sha256
+    stamp = time.strftime("%Y%m%dT%H%M%S")
+    moved = 0
+    for path in map(Path, paths):
+        if not path.exists():
+            continue
+        sha = recorded.get(str(path.resolve()))
+        if sha is not None:
+            problem = None if sha256_file(path) == sha else "its content changed after the manifest recorded it"
+        else:
+            try:
+                read_episode(path)
+                problem = None
+            except CorruptEpisodeError as e:
+                problem = e.reason
+        if problem:
+            aside = path.with_name(f"{path.name}.damaged-{stamp}")
+            os.replace(path, aside)
+            log.warning("%s is damaged (%s): moved to %s; collecting it again with the same seed", path, problem,
+                        aside.name)
+            moved += 1
+    return moved
