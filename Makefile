@@ -72,7 +72,7 @@ tensorboard: setup
 	$(VENV)/bin/tensorboard --logdir $(EXP) --port $${PORT:-6006}
 
 bench: setup
-	$(PY) -m worldenv_core.bench
+	$(PY) -m benchmarks.bench
 
 clean:
 	rm -rf outputs/* data/*

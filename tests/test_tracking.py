@@ -47,7 +47,7 @@ def test_running_means_send_each_history_entry_to_the_tracker(tmp_path):
 @pytest.mark.parametrize("logger, kind", [("tensorboard", "TensorBoardTracker"), ("none", "Tracker")])
 def test_the_logger_group_selects_the_tracker(tmp_path, logger, kind):
     cfg = compose_config("train_policy", ["+task=tiny", "scale=tiny", f"logger={logger}"])
-    with make_tracker(cfg, tmp_path / "work", "train_policy") as tracker:
+    with make_tracker(cfg.logger, tmp_path / "work", "train_policy", "tiny") as tracker:
         assert type(tracker).__name__ == kind
     assert (tmp_path / "work" / "tensorboard").is_dir() == (logger == "tensorboard")
 
@@ -57,7 +57,7 @@ def test_wandb_runs_offline_in_the_work_dir(tmp_path, monkeypatch):
     monkeypatch.setenv("WANDB_MODE", "offline")
     cfg = compose_config("train_policy", ["+task=tiny", "scale=tiny", "logger=wandb"])
     assert cfg.logger.mode == "offline"
-    with make_tracker(cfg, tmp_path / "work", "train_policy", OmegaConf.to_container(cfg.train)) as tracker:
+    with make_tracker(cfg.logger, tmp_path / "work", "train_policy", "tiny", OmegaConf.to_container(cfg.train)) as tracker:
         tracker.log({"loss": 1.0}, 1)
     runs = list((tmp_path / "work" / "wandb").glob("offline-run-*"))
     assert len(runs) == 1 and list(runs[0].glob("*.wandb"))

@@ -17,10 +17,11 @@ from worldenv_core.data.mcap_io import CorruptEpisodeError
 from worldenv_core.envs.tasks import UnknownTaskError
 from worldenv_core.manifest import ArtefactError
 from worldenv_core.models.checkpoint import CheckpointError
-from worldenv_core.stage import ConfigError
+from worldenv_core.contract import ContractError
+from worldenv_core.errors import ConfigError
 
 # Bad settings and bad or missing artefacts: each message names what is wrong and how to fix it.
-USER_ERRORS = (ConfigError, UnknownTaskError, ArtefactError, CheckpointError, CorruptEpisodeError)
+USER_ERRORS = (ConfigError, UnknownTaskError, ArtefactError, CheckpointError, ContractError, CorruptEpisodeError)
 EXIT_USER_ERROR = 2
 
 

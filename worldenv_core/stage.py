@@ -11,15 +11,13 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from worldenv_core.contract import TaskContract
+from worldenv_core.errors import ConfigError
 from worldenv_core.envs.tasks import check_suite, resolve_task_ids, suite_max_steps
 from worldenv_core.manifest import Manifest, config_hash
 
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 log = logging.getLogger("worldenv")
-
-
-class ConfigError(ValueError):
-    """An invalid or incomplete stage configuration."""
 
 
 def available_tasks() -> list[str]:
@@ -43,6 +41,11 @@ def require_task(cfg: DictConfig) -> DictConfig:
         with open_dict(task):
             task.max_steps = suite_max_steps(task.suite)
     return task
+
+
+def task_contract(cfg: DictConfig) -> TaskContract:
+    """The run's task contract, built once from the validated `cfg.task`."""
+    return TaskContract.from_config(require_task(cfg))
 
 
 def positive_int(cfg: DictConfig, key: str, allow_zero: bool = False) -> int:

@@ -16,6 +16,8 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
+from worldenv_core.errors import ConfigError
+
 log = logging.getLogger(__name__)
 LOGGERS = ("tensorboard", "wandb", "none")
 
@@ -72,8 +74,6 @@ class WandbTracker(Tracker):
         try:
             import wandb
         except ImportError as e:
-            from worldenv_core.stage import ConfigError
-
             raise ConfigError("logger=wandb needs the wandb package: pip install -e '.[wandb]' "
                               "(or use logger=tensorboard)") from e
         os.environ.setdefault("WANDB_SILENT", "true")
@@ -89,15 +89,16 @@ class WandbTracker(Tracker):
         self.run.finish()
 
 
-def make_tracker(cfg: DictConfig, work: Path, stage: str, config: dict | None = None) -> Tracker:
-    """The tracker `cfg.logger` selects, writing under the run's work dir (so a resumed run appends
-    to its own curves and an experiment's runs are found by `tensorboard --logdir <experiment>`)."""
-    spec = cfg.get("logger")
+def make_tracker(spec: DictConfig | None, work: Path, stage: str, group: str = "", config: dict | None = None) -> Tracker:
+    """The tracker a stage's `logger` setting selects (`spec`: its config node, None for none),
+    writing under the run's work dir (so a resumed run appends to its own curves and an
+    experiment's runs are found by `tensorboard --logdir <experiment>`). `group`: the task name
+    (a wandb group)."""
     name = spec.name if spec is not None else "none"
     work = Path(work)
     if name == "tensorboard":
         return TensorBoardTracker(work / "tensorboard", int(spec.get("flush_secs", 10)))
     if name == "wandb":
         return WandbTracker(work, run_id=f"{stage}-{work.name}"[:64], run_name=f"{stage}/{work.name[:8]}",
-                            project=spec.project, group=str(cfg.task.name), mode=spec.mode, config=config or {})
+                            project=spec.project, group=group, mode=spec.mode, config=config or {})
     return Tracker()

@@ -1,7 +1,9 @@
-"""Pictures people would rather look at than read: episode montages as GIF/MP4."""
+"""Pictures people would rather look at than read: episode montages as GIF/MP4, training curves,
+and `save_figure`, the one way every plot of the project is written (atomically, headless)."""
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -33,4 +35,50 @@ def montage_video(videos: list[np.ndarray], path: str | Path, max_frames: int = 
     tmp = path.with_name(path.stem + ".tmp" + path.suffix)
     imageio.mimsave(tmp, frames, duration=1000 / fps, loop=0) if path.suffix == ".gif" else imageio.mimsave(tmp, frames, fps=fps)
     tmp.replace(path)
+    return path
+
+
+def figure(*args, **kwargs):
+    """`plt.subplots(...)` on the headless backend (stages run without a display)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt.subplots(*args, **kwargs)
+
+
+def save_figure(fig, path: str | Path) -> Path:
+    """Write `fig` as `path` (a temporary name first, renamed when complete) and close it."""
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.stem + ".tmp" + path.suffix)
+    fig.savefig(tmp)
+    plt.close(fig)
+    tmp.replace(path)
+    return path
+
+
+def plot_history(history: list[dict], path: str | Path, title: str = "") -> Path:
+    """One panel per logged loss/metric against the step; the history itself beside it as JSON."""
+    keys = [k for k in dict.fromkeys(k for h in history for k in h) if k != "step"]  # entries may differ
+    cols = min(4, max(1, len(keys)))  # a grid, not one long strip: readable at page width
+    rows = -(-max(1, len(keys)) // cols)
+    fig, axes = figure(rows, cols, figsize=(4 * cols, 2.8 * rows), squeeze=False)
+    for ax in axes.flat[len(keys):]:
+        ax.axis("off")
+    for ax, k in zip(axes.flat, keys):
+        pts = [(h["step"], h[k]) for h in history if k in h]
+        ax.plot(*zip(*pts), marker="o" if len(pts) < 20 else None)
+        if "success" in k and pts and pts[0][0] == 0:  # step 0 is the starting (SFT) policy: keep it in view
+            ax.axhline(pts[0][1], color="grey", linestyle="--", linewidth=1, label="start (SFT)")
+            ax.legend(fontsize=7)
+        ax.set_title(k)
+        ax.set_xlabel("step")
+    fig.suptitle(title)
+    fig.tight_layout()
+    path = save_figure(fig, path)
+    path.with_suffix(".json").write_text(json.dumps(history))
     return path

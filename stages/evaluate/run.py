@@ -9,20 +9,20 @@ from contextlib import ExitStack
 from datetime import datetime
 from pathlib import Path
 
-import numpy as np
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
+from stages.evaluate.evaluation import markdown, summarise
+from stages.report import write_report
 from worldenv_core.envs.collection import PolicyEvalJob, evaluate_policy_task
 from worldenv_core.envs.tasks import check_suite, num_tasks, resolve_task_ids, suite_max_steps
 from worldenv_core.manifest import StageRun
 from worldenv_core.models.checkpoint import read_config
-from worldenv_core.models.reflector import check_eta, reflector_eta
+from worldenv_core.rl.termination import check_eta, reflector_eta
 from worldenv_core.parallel import run_jobs
-from worldenv_core.report import write_report
 from worldenv_core.rl.termination import StopOutcome, termination_metrics
 from worldenv_core.stage import (POLICY_SOURCES, ConfigError, positive_int, require_task, resolve_checkpoint,
-                                 resolve_policy, resolved, start)
+                                 resolve_policy, resolved, start, task_contract)
 from worldenv_core.viz import montage_video
 
 log = logging.getLogger("worldenv.evaluate")
@@ -100,9 +100,9 @@ def run(cfg: DictConfig) -> dict:
                           if cfg.termination in ("reflector", "all") else None)
         eta = reflector_eta(reflector_path, cfg.eta) if reflector_path else None
         inits = list(range(cfg.init_states))
-        jobs = [PolicyEvalJob(policy_path=policy_path, suite=suite, task_id=t, init_ids=tuple(inits[i:i + JOB_SIZE]),
-                              cameras=tuple(task.cameras), image_size=task.image_size, chunk=task.chunk,
-                              max_steps=max_steps, termination=cfg.termination,
+        contract = task_contract(cfg).on_suite(suite, max_steps)
+        jobs = [PolicyEvalJob(policy_path=policy_path, contract=contract, task_id=t, init_ids=tuple(inits[i:i + JOB_SIZE]),
+                              termination=cfg.termination,
                               video_ids=tuple(inits[:cfg.videos_per_task]), reflector_path=reflector_path,
                               eta=eta)
                 for t in resolve_task_ids(task.suite, task.task_ids) for i in range(0, len(inits), JOB_SIZE)]
@@ -147,34 +147,3 @@ def record_mode(stage: StageRun, cfg: DictConfig, mode: str, rows: list[dict], v
     stage.metrics.update({k: v for k, v in summary.items() if k != "per_task"})
     print(markdown(summary, suite))
     return summary
-
-
-def summarise(rows: list[dict]) -> dict:
-    per_task = []
-    for tid in sorted({r["task_id"] for r in rows}):
-        rs = [r for r in rows if r["task_id"] == tid]
-        per_task.append({"task_id": tid, "task": rs[0]["task"], "n": len(rs),
-                         "success_rate": float(np.mean([r["success"] for r in rs])),
-                         "ever_succeeded_rate": float(np.mean([r["ever_succeeded"] for r in rs])),
-                         "mean_steps": float(np.mean([r["steps"] for r in rs])),
-                         "errors": sum(r["error"] is not None for r in rs)})
-    return {"success_rate": float(np.mean([r["success"] for r in rows])),
-            "ever_succeeded_rate": float(np.mean([r["ever_succeeded"] for r in rows])),
-            "episodes": len(rows), "per_task": per_task}
-
-
-def markdown(summary: dict, suite: str) -> str:
-    lines = [f"Success on {suite} ({summary['termination']} termination, first {summary['init_states']} "
-             f"benchmark init states per task)\n",
-             "| task | name | success | reached success at some step | mean steps |", "|---|---|---|---|---|"]
-    lines += [f"| {r['task_id']} | {r['task']} | {100 * r['success_rate']:.0f}% | {100 * r['ever_succeeded_rate']:.0f}% "
-              f"| {r['mean_steps']:.0f} |" for r in summary["per_task"]]
-    lines.append(f"| all | | **{100 * summary['success_rate']:.1f}%** | {100 * summary['ever_succeeded_rate']:.1f}% | |")
-    if "reflector_termination" in summary:
-        t = summary["reflector_termination"]
-        early = t["false_stops_before_success"]
-        lines += ["", f"Reflector stops (eta = {summary['eta']}): {t['correct_stops']} at or after the oracle's success "
-                  f"(median {t['timing_error_median']:.0f} steps late), {t['false_stops']} false stops "
-                  f"({early} before a success that came later, {t['false_stops'] - early} in failures), "
-                  f"{t['missed_successes']} successes never stopped; termination F1 {t['f1']:.3f}."]
-    return "\n".join(lines) + "\n"

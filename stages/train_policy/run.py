@@ -8,24 +8,21 @@ iterations (appendix B.1).
 from __future__ import annotations
 
 import logging
-import time
 from collections import defaultdict
 from pathlib import Path
 
 import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
-from tqdm import tqdm
 
 from worldenv_core.data.dataset import EpisodeDataset
 from worldenv_core.data.mcap_io import read_info
 from worldenv_core.manifest import StageRun
-from worldenv_core.models.checkpoint import save_model
 from worldenv_core.models.text import InstructionEncoder
-from worldenv_core.rl.laplace import laplace_nll
-from worldenv_core.stage import ConfigError, positive_int, require_task, resolved, start, work_dir
+from worldenv_core.models.laplace import laplace_nll
+from worldenv_core.stage import ConfigError, positive_int, require_task, resolved, start, task_contract, work_dir
 from worldenv_core.tracking import make_tracker
-from worldenv_core.training import Checkpoints, RunningMeans, batches, pick_device, plot_history, random_shift
+from worldenv_core.training import Phase, Trainer, batches, optimize, pick_device, random_shift
 
 log = logging.getLogger("worldenv.train_policy")
 
@@ -59,94 +56,83 @@ def _batch_inputs(model, batch, encoder, device, shift: int = 0):
     return images, batch["proprio"].float().to(device), encoder(list(batch["instruction"])).to(device)
 
 
+def action_step(model, optimizer, encoder, device, shift: int):
+    """Phase 1: backbone and action head, L1 on mu over the chunk's valid steps (eq. 6)."""
+    def step(batch) -> dict:
+        images, proprio, lang = _batch_inputs(model, batch, encoder, device, shift)
+        mu, _ = model(images, proprio, lang)
+        target = model.normalize_actions(batch["actions"].float().to(device))
+        valid = (~batch["action_is_pad"]).to(device)[..., None].float()
+        loss = ((mu - target).abs() * valid).sum() / (valid.sum() * mu.shape[-1])
+        optimize(loss, optimizer, clip=1.0, params=list(model.parameters()))
+        return {"l1": loss.item()}
+    return step
+
+
+def scale_step(model, optimizer, encoder, device):
+    """Phase 2: the scale head alone, Laplace NLL on frozen features and a fixed mu (eq. 8)."""
+    def step(batch) -> dict:
+        images, proprio, lang = _batch_inputs(model, batch, encoder, device)
+        with torch.no_grad():  # features and mu stay fixed: only the scale head learns
+            f = model.features(images, proprio, lang)
+            mu = model.action_head(f).view(-1, model.chunk, model.action_dim)
+        raw = model.scale_head(f).view_as(mu)
+        beta = model.beta_min + (model.beta_max - model.beta_min) * torch.sigmoid(raw)
+        target = model.normalize_actions(batch["actions"].float().to(device))
+        valid = (~batch["action_is_pad"]).to(device)[..., None].float()
+        loss = (laplace_nll(target, mu, beta) * valid).sum() / (valid.sum() * mu.shape[-1])
+        optimize(loss, optimizer)
+        return {"nll": loss.item(), "beta": (beta * valid).sum().item() / (valid.sum().item() * mu.shape[-1])}
+    return step
+
+
+def build_policy(cfg: DictConfig, stats: dict, device) -> tuple[torch.nn.Module, dict, dict]:
+    """The policy from its config, normalised by the demos' statistics, and its two optimizers."""
+    model_cfg = OmegaConf.to_container(cfg.policy, resolve=True)
+    model = instantiate(model_cfg, _convert_="all")
+    model.proprio_norm.set_stats(stats["proprio"]["mean"], stats["proprio"]["std"])
+    model.action_norm.set_stats(stats["action"]["mean"], stats["action"]["std"])
+    model.to(device)
+    scale_params = list(model.scale_head.parameters())
+    ids = {id(p) for p in scale_params}
+    optimizers = {"action": torch.optim.AdamW([p for p in model.parameters() if id(p) not in ids], lr=cfg.train.lr,
+                                              weight_decay=cfg.train.weight_decay),
+                  "scale": torch.optim.Adam(scale_params, lr=cfg.scale_head.lr)}
+    return model, model_cfg, optimizers
+
+
 def run(cfg: DictConfig) -> dict:
     manifest = start(cfg, validate)
-    task = cfg.task
+    contract = task_contract(cfg)
     device = pick_device(cfg.device)
-    tags = {"task": task.name, "scale": cfg.scale.name}
     config = resolved(cfg)
-    with StageRun(manifest, "train_policy", tags, config) as stage:
-        demos = manifest.get(cfg.demos) if cfg.demos else manifest.latest("collect", task=task.name,
+    with StageRun(manifest, "train_policy", {"task": contract.name, "scale": cfg.scale.name}, config) as stage:
+        demos = manifest.get(cfg.demos) if cfg.demos else manifest.latest("collect", task=contract.name,
                                                                             scale=cfg.scale.name, source="expert")
-        paths = select_demos(stage.use(demos, kind="episodes"), cfg.demos_per_task, list(task.task_ids or []) or None)
+        paths = select_demos(stage.use(demos, kind="episodes"), cfg.demos_per_task, list(contract.task_ids or []) or None)
         work = work_dir(cfg.experiment_dir, "train_policy", config, stage.work_inputs())
         stage.lock(work)  # one run at a time trains into a work dir
-        data = EpisodeDataset(paths, cameras=list(task.cameras), mode="chunk", chunk=task.chunk, future_frames=False)
-        stats = data.compute_stats()
-        model_cfg = OmegaConf.to_container(cfg.policy, resolve=True)
-        model = instantiate(model_cfg, _convert_="all")
-        model.proprio_norm.set_stats(stats["proprio"]["mean"], stats["proprio"]["std"])
-        model.action_norm.set_stats(stats["action"]["mean"], stats["action"]["std"])
-        model.to(device)
-        scale_params = list(model.scale_head.parameters())
-        ids = {id(p) for p in scale_params}
-        opt_action = torch.optim.AdamW([p for p in model.parameters() if id(p) not in ids],
-                                       lr=cfg.train.lr, weight_decay=cfg.train.weight_decay)
-        opt_scale = torch.optim.Adam(scale_params, lr=cfg.scale_head.lr)
-        optimizers = {"action": opt_action, "scale": opt_scale}
-        ckpts = Checkpoints(work)
-        step, history = ckpts.restore(model, optimizers)
-        meta = {"kind": "policy", "task": task.name, "suite": task.suite, "cameras": list(task.cameras),
-                "image_size": task.image_size, "chunk": task.chunk, "action_dim": task.action_dim,
-                "proprio_dim": task.proprio_dim, "demos": len(paths)}
+        data = EpisodeDataset(paths, cameras=list(contract.cameras), mode="chunk", chunk=contract.chunk,
+                              future_frames=False)
+        model, model_cfg, optimizers = build_policy(cfg, data.compute_stats(), device)
+        trainer = Trainer(work, model, optimizers, model_config=model_cfg, desc="train_policy",
+                          meta={"kind": "policy", **contract.meta(), "cameras": list(contract.cameras),
+                                "demos": len(paths)},
+                          log_every=cfg.train.log_every, checkpoint_every=cfg.train.checkpoint_every,
+                          tracker=make_tracker(cfg.get("logger"), work, "train_policy", contract.name, config))
         encoder = InstructionEncoder()
-        n_action, total = cfg.train.steps, cfg.train.steps + cfg.scale_head.steps
         log.info("training on %d demos (%d chunks) for %d + %d steps on %s; work dir %s",
-                 len(paths), len(data), n_action, cfg.scale_head.steps, device, work)
-        action_batches = batches(data, cfg.train.batch_size, cfg.seed, start_step=min(step, n_action))
-        scale_batches = batches(data, cfg.scale_head.batch_size, cfg.seed + 1, start_step=max(0, step - n_action))
-        t0 = time.perf_counter()
-        bar = tqdm(range(step, total), initial=step, total=total, desc="train_policy", dynamic_ncols=True)
-        tracker = make_tracker(cfg, work, "train_policy", config)
-        running = RunningMeans(history, cfg.train.log_every, bar, tracker)
-        for step in bar:
-            model.train()
-            if step < n_action:
-                batch = next(action_batches)
-                images, proprio, lang = _batch_inputs(model, batch, encoder, device, cfg.train.augment_shift)
-                mu, _ = model(images, proprio, lang)
-                target = model.normalize_actions(batch["actions"].float().to(device))
-                valid = (~batch["action_is_pad"]).to(device)[..., None].float()
-                loss = ((mu - target).abs() * valid).sum() / (valid.sum() * mu.shape[-1])
-                opt_action.zero_grad(set_to_none=True)
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
-                opt_action.step()
-                running.add(l1=loss.item())
-            else:
-                batch = next(scale_batches)
-                images, proprio, lang = _batch_inputs(model, batch, encoder, device)
-                with torch.no_grad():  # features and mu stay fixed: only the scale head learns
-                    f = model.features(images, proprio, lang)
-                    mu = model.action_head(f).view(-1, model.chunk, model.action_dim)
-                raw = model.scale_head(f).view_as(mu)
-                beta = model.beta_min + (model.beta_max - model.beta_min) * torch.sigmoid(raw)
-                target = model.normalize_actions(batch["actions"].float().to(device))
-                valid = (~batch["action_is_pad"]).to(device)[..., None].float()
-                loss = (laplace_nll(target, mu, beta) * valid).sum() / (valid.sum() * mu.shape[-1])
-                opt_scale.zero_grad(set_to_none=True)
-                loss.backward()
-                opt_scale.step()
-                running.add(nll=loss.item(), beta=(beta * valid).sum().item() / (valid.sum().item() * mu.shape[-1]))
-            done = step + 1
-            running.end_step(done, total)
-            if done % cfg.train.checkpoint_every == 0 or done == total:
-                ckpts.save(done, model, model_cfg, meta, optimizers, history)
-        bar.close()
-        tracker.close()
-        final = save_model(work / "policy", model.cpu(), model_cfg, {**meta, "step": total})
-        for f in sorted(final.iterdir()):
-            stage.add_output(f, kind="checkpoint")
-        plot = plot_history(history, work / "losses.png", f"train_policy {task.name}")
-        stage.add_output(plot, kind="plot")
-        last_l1 = [h["l1"] for h in history if "l1" in h]
-        last_nll = [h for h in history if "nll" in h]
-        stage.metrics.update({
-            "demos": len(paths), "chunks": len(data), "steps": total, "train_wall_s": round(time.perf_counter() - t0, 1),
-            "final_l1": last_l1[-1] if last_l1 else None,
-            "final_nll": last_nll[-1]["nll"] if last_nll else None,
-            "final_mean_beta": last_nll[-1]["beta"] if last_nll else None,
-            "device": str(device),
-        })
+                 len(paths), len(data), cfg.train.steps, cfg.scale_head.steps, device, work)
+        trainer.fit([
+            Phase("action", cfg.train.steps, lambda s: batches(data, cfg.train.batch_size, cfg.seed, start_step=s),
+                  action_step(model, optimizers["action"], encoder, device, cfg.train.augment_shift)),
+            Phase("scale", cfg.scale_head.steps, lambda s: batches(data, cfg.scale_head.batch_size, cfg.seed + 1, start_step=s),
+                  scale_step(model, optimizers["scale"], encoder, device))])
+        final = trainer.save_final(work / "policy")
+        trainer.finish(stage, final, f"train_policy {contract.name}")
+        last = lambda key: next((h[key] for h in reversed(trainer.history) if key in h), None)  # noqa: E731
+        stage.metrics.update({"demos": len(paths), "chunks": len(data), "steps": trainer.step,
+                              "train_wall_s": round(trainer.wall_s, 1), "final_l1": last("l1"),
+                              "final_nll": last("nll"), "final_mean_beta": last("beta"), "device": str(device)})
         log.info("policy saved to %s; metrics %s", final, stage.metrics)
     return stage.metrics

@@ -17,6 +17,7 @@ import itertools
 
 from omegaconf import OmegaConf
 
+from stages.train_worldsim.evaluation import fidelity_by_horizon
 from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.data.selection import holdout_split
 from worldenv_core.kinematics.camera import PinholeCamera
@@ -26,7 +27,6 @@ from worldenv_core.models.checkpoint import load_model
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
-    from stages.train_worldsim.run import _fidelity
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("experiment_dir")
@@ -58,7 +58,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         model.sampling_steps = steps or defaults[0]
         model.noise_scale = defaults[1] if noise is None else noise
         model.static_snap = defaults[2] if snap is None else snap
-        fidelity, _ = _fidelity(cfg, model, kinematics, cameras, held_eps, gate)
+        fidelity, _ = fidelity_by_horizon(cfg, model, kinematics, cameras, held_eps, gate)
         for h, v in fidelity.items():
             rows.append({"detail_gate": gate, "sampling_steps": model.sampling_steps, "noise_scale": model.noise_scale,
                          "static_snap": model.static_snap, "horizon": h, **v})

@@ -64,9 +64,9 @@ def test_articulated_rules_without_sim_state_changes():
         assert A.articulated_container(ctx, "wooden_cabinet_1_top_side", "on") is None
         assert A.articulated_container(ctx, "main_table_stove_front_region") is None
         assert not A.is_open(ctx, "wooden_cabinet_1_top_region")  # starts shut (q = 0)
-        q_open, sign = A._target_q(ctx, "wooden_cabinet_1_top_region", "open")
+        q_open, sign = A.target_q(ctx, "wooden_cabinet_1_top_region", "open")
         assert sign < 0 and -0.16 <= q_open < -0.14  # inside LIBERO's open range
-        q_on, s_on = A._target_q(ctx, "flat_stove_1", "turnon")
+        q_on, s_on = A.target_q(ctx, "flat_stove_1", "turnon")
         assert s_on > 0 and q_on >= 0.5
         assert P.is_dish(ctx, "plate_1") and not P.is_dish(ctx, "akita_black_bowl_1")
         assert P.is_table_region(ctx, "main_table_stove_front_region")

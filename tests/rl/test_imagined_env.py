@@ -5,10 +5,10 @@ import pytest
 import torch
 from hydra.utils import instantiate
 
-from worldenv_core.envs.imagined import ImaginedSimulator
+from worldenv_core.imagination.simulator import ImaginedSimulator
 from worldenv_core.kinematics import NextStateModel, PinholeCamera
 from worldenv_core.models.worldsim import WorldSimulator
-from worldenv_core.rl.imagined_env import Context, ImaginedEnv
+from worldenv_core.imagination.env import Context, ImaginedEnv
 
 TINY = dict(image_size=32, chunk=4, memory_offsets=(0, 2), latent_size=8, latent_channels=4, ae_widths=(8, 16),
             width=16, map_channels=4, use_raw_actions=True, sampling_steps=1)

@@ -8,7 +8,7 @@ from hydra.utils import instantiate
 
 from test_imagined_env import contexts, make_env  # the tiny imagined env of those tests
 from worldenv_core.data.mcap_io import read_episode, read_reflector_scores
-from worldenv_core.rl.imagined_recording import record_imagined_rollouts, write_imagined_rollouts
+from worldenv_core.imagination.recording import record_imagined_rollouts, write_imagined_rollouts
 from worldenv_core.rl.loop import collect_rollouts
 
 

@@ -2,7 +2,7 @@ import math
 
 import torch
 
-from worldenv_core.rl.laplace import laplace_log_prob, laplace_nll, laplace_sample
+from worldenv_core.models.laplace import laplace_log_prob, laplace_nll, laplace_sample
 
 
 def test_nll_and_log_prob_match_torch():

@@ -54,7 +54,7 @@ class ActionRewardEnv:
     chunk = 4
 
     def reset(self, contexts):
-        from worldenv_core.rl.imagined_env import StepResult
+        from worldenv_core.imagination.env import StepResult
 
         b = len(contexts)
         self.frames = torch.stack([c.frame for c in contexts])
@@ -65,7 +65,7 @@ class ActionRewardEnv:
         return self.state
 
     def step(self, actions, generator=None):
-        from worldenv_core.rl.imagined_env import StepResult
+        from worldenv_core.imagination.env import StepResult
 
         self.positive.append((actions[..., 0] > 0).float().mean(1))
         t = self.state.t + self.chunk
@@ -77,7 +77,7 @@ class ActionRewardEnv:
 def test_a_tiny_loop_improves_a_synthetic_reward():
     from hydra.utils import instantiate
 
-    from worldenv_core.rl.imagined_env import Context
+    from worldenv_core.imagination.env import Context
     from worldenv_core.rl.loop import collect_rollouts, policy_param_groups, ppo_update
 
     torch.manual_seed(0)

@@ -11,6 +11,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from stages.collect.run import episode_dir, run
+from worldenv_core.contract import TaskContract
 from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.envs.collection import ExpertEpisodeJob, collect_expert_episode
 from worldenv_core.envs.tasks import UnknownTaskError
@@ -105,8 +106,8 @@ def test_killed_collection_resumes_and_reproduces_the_episodes(tmp_path):
 
     # Same job, fresh file: bit-identical to what the killed run wrote.
     ref = tmp_path / "ref.mcap"
-    job = ExpertEpisodeJob("libero_object", 0, 0, str(ref), cfg.seed, cfg.init_states, tuple(cfg.task.cameras),
-                           cfg.task.image_size, cfg.task.max_steps, cfg.max_attempts, 20.0)
+    job = ExpertEpisodeJob(TaskContract.from_config(cfg.task), 0, 0, str(ref), cfg.seed, cfg.init_states,
+                           cfg.max_attempts)
     assert collect_expert_episode(job)["status"] == "kept"
     a, b = read_episode(first), read_episode(ref)
     assert a.equals(b)

@@ -59,22 +59,15 @@ def episode_key(path: str | Path) -> str:
     return "/".join(Path(path).parts[-3:])
 
 
-def load_split(manifest: Manifest, stage: StageRun, cfg) -> tuple[list[Path], list[Path], list, list]:
-    """What the world-simulator and reflector stages start from: the collected episodes of
-    `cfg.task` / `cfg.scale` (expert only if `cfg.expert_only`), split by `cfg.holdout_every`, read
-    with `cfg.camera` only. Returns (train paths, held-out paths, train episodes, held-out episodes);
-    a missing collection or nothing left to train on is a ConfigError naming the fix."""
-    from worldenv_core.data.mcap_io import read_episode
-    from worldenv_core.stage import ConfigError
-
-    try:
-        paths = collected_episodes(manifest, stage, cfg.task.name, cfg.scale.name, cfg.expert_only)
-    except MissingEpisodesError as e:
-        raise ConfigError(str(e)) from None
-    train, held = holdout_split(paths, cfg.holdout_every)
+def load_split(paths: list[Path], holdout_every: int, camera: str) -> tuple[list[Path], list[Path], list, list]:
+    """What the world-simulator and reflector stages start from: `paths` (`collected_episodes`)
+    split by `holdout_every` and read with `camera` only. Returns (train paths, held-out paths,
+    train episodes, held-out episodes); nothing left to train on is an error naming the count."""
+    train, held = holdout_split(paths, holdout_every)
     if not train:
-        raise ConfigError(f"only {len(paths)} episodes: none left for training after holding out {len(held)}")
-    read = lambda ps: [read_episode(p, cameras=[cfg.camera]) for p in ps]  # noqa: E731
+        raise MissingEpisodesError(f"only {len(paths)} episodes: none left for training after holding out {len(held)}; "
+                                   "collect more (episodes_per_task=N) or raise holdout_every")
+    read = lambda ps: [read_episode(p, cameras=[camera]) for p in ps]  # noqa: E731
     return train, held, read(train), read(held)
 
 

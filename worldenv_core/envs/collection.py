@@ -14,22 +14,19 @@ from pathlib import Path
 
 import numpy as np
 
+from worldenv_core.contract import TaskContract
 from worldenv_core.envs.recording import attempt_seed, cached_env, expert_attempt, to_episode
 
 
 @dataclass(frozen=True)
 class ExpertEpisodeJob:
-    suite: str
+    contract: TaskContract  # suite, cameras, image size, step limit, frame rate
     task_id: int
     index: int  # demo number within the task
     path: str
     seed: int
     init_mode: str  # "sampled" | "benchmark"
-    cameras: tuple[str, ...]
-    image_size: int
-    max_steps: int
     max_attempts: int
-    fps: float
     post_success_steps: int = 0  # keep acting this many steps after success (frames of the task done)
 
 
@@ -37,17 +34,18 @@ def collect_expert_episode(job: ExpertEpisodeJob) -> dict:
     """Try the expert until it succeeds (at most `max_attempts`), render and write the kept episode."""
     from worldenv_core.data.mcap_io import write_episode
 
-    out = {"suite": job.suite, "task_id": job.task_id, "index": job.index, "path": job.path}
+    c = job.contract
+    out = {"suite": c.suite, "task_id": job.task_id, "index": job.index, "path": job.path}
     if Path(job.path).exists():
         return {**out, "status": "exists"}
     t0 = time.perf_counter()
-    env = cached_env(job.suite, job.task_id, job.cameras, job.image_size, render=True)
+    env = cached_env(c.suite, job.task_id, c.cameras, c.image_size, render=True)
     build_s = time.perf_counter() - t0
     errors, steps_tried = [], 0
     for attempt in range(job.max_attempts):
-        seed = attempt_seed(job.seed, job.suite, job.task_id, job.index, attempt)
+        seed = attempt_seed(job.seed, c.suite, job.task_id, job.index, attempt)
         init = None if job.init_mode == "sampled" else job.index % 50
-        traj = expert_attempt(env, init, seed, job.max_steps, post_success_steps=job.post_success_steps)
+        traj = expert_attempt(env, init, seed, c.max_steps, post_success_steps=job.post_success_steps)
         steps_tried += traj.length
         if traj.error:
             errors.append(traj.error)
@@ -56,7 +54,7 @@ def collect_expert_episode(job: ExpertEpisodeJob) -> dict:
         t_render = time.perf_counter()
         episode = to_episode(
             env, traj, init_state_index=-1 if init is None else init, seed=seed, source="expert",
-            attempts=attempt + 1, fps=job.fps,
+            attempts=attempt + 1, fps=c.control_freq,
         )
         render_s = time.perf_counter() - t_render
         write_episode(job.path, episode)
@@ -69,23 +67,23 @@ def collect_expert_episode(job: ExpertEpisodeJob) -> dict:
 
 @dataclass(frozen=True)
 class ExpertEvalJob:
-    suite: str
+    contract: TaskContract
     task_id: int
     init_ids: tuple[int, ...]
     seed: int
-    max_steps: int
 
 
 def evaluate_expert_task(job: ExpertEvalJob) -> list[dict]:
     """Expert success on the benchmark's fixed init states of one task (physics only)."""
-    env = cached_env(job.suite, job.task_id, (), 0, render=False)
+    suite = job.contract.suite
+    env = cached_env(suite, job.task_id, (), 0, render=False)
     rows = []
     for i in job.init_ids:
         t0 = time.perf_counter()
         # The seeds the expert's development measurements used, so the table reproduces them.
         rng = np.random.default_rng([job.seed, job.task_id, i])
-        traj = expert_attempt(env, i, job.seed * 100003 + job.task_id * 1009 + i, job.max_steps, rng=rng)
-        rows.append({"suite": job.suite, "task_id": job.task_id, "task": env.task.name, "init_state": i,
+        traj = expert_attempt(env, i, job.seed * 100003 + job.task_id * 1009 + i, job.contract.max_steps, rng=rng)
+        rows.append({"suite": suite, "task_id": job.task_id, "task": env.task.name, "init_state": i,
                      "success": traj.success, "steps": traj.length, "error": traj.error,
                      "seconds": time.perf_counter() - t0})
     return rows
@@ -107,20 +105,17 @@ def summarise_expert_eval(rows: list[dict]) -> list[dict]:
 _RUNNERS: dict = {}
 
 
-def cached_runner(policy_path: str, sample: bool, noise_scale: float, expect: dict):
+def cached_runner(policy_path: str, sample: bool, noise_scale: float, contract: TaskContract):
     """One loaded policy per worker process (loading costs more than an episode's first chunk)."""
-    from worldenv_core.models.policy import PolicyRunner, load_policy
+    from worldenv_core.models.checkpoint import load_checkpoint
+    from worldenv_core.models.policy import PolicyRunner
 
     key = (policy_path, sample, noise_scale)
     if key not in _RUNNERS:
-        model, _ = load_policy(policy_path, expect=expect)
+        model, _ = load_checkpoint(policy_path, "policy", contract)
         _RUNNERS.clear()
         _RUNNERS[key] = PolicyRunner(model, sample=sample, noise_scale=noise_scale)
     return _RUNNERS[key]
-
-
-def policy_contract(cameras, image_size: int, chunk: int) -> dict:
-    return {"cameras": list(cameras), "image_size": int(image_size), "chunk": int(chunk), "action_dim": 7}
 
 
 @dataclass(frozen=True)
@@ -128,19 +123,14 @@ class PolicyEpisodeJob:
     """One Laplace-perturbed policy rollout, kept whatever its outcome."""
 
     policy_path: str
-    suite: str
+    contract: TaskContract
     task_id: int
     index: int
     path: str
     seed: int
     init_mode: str
-    cameras: tuple[str, ...]
-    image_size: int
-    chunk: int
-    max_steps: int
     noise_scale: float
     stop_on_success: bool
-    fps: float
     post_success_steps: int = 0
 
 
@@ -148,21 +138,22 @@ def collect_policy_episode(job: PolicyEpisodeJob) -> dict:
     from worldenv_core.data.mcap_io import write_episode
     from worldenv_core.envs.recording import policy_episode
 
-    out = {"suite": job.suite, "task_id": job.task_id, "index": job.index, "path": job.path}
+    c = job.contract
+    out = {"suite": c.suite, "task_id": job.task_id, "index": job.index, "path": job.path}
     if Path(job.path).exists():
         return {**out, "status": "exists"}
     t0 = time.perf_counter()
-    env = cached_env(job.suite, job.task_id, job.cameras, job.image_size, render=True)
-    runner = cached_runner(job.policy_path, True, job.noise_scale, policy_contract(job.cameras, job.image_size, job.chunk))
-    seed = attempt_seed(job.seed, job.suite, job.task_id, job.index, 0)
+    env = cached_env(c.suite, job.task_id, c.cameras, c.image_size, render=True)
+    runner = cached_runner(job.policy_path, True, job.noise_scale, c)
+    seed = attempt_seed(job.seed, c.suite, job.task_id, job.index, 0)
     runner.generator.manual_seed(seed)  # the Laplace noise of this episode depends on the job alone
     init = None if job.init_mode == "sampled" else job.index % 50
-    traj = policy_episode(env, runner, init, seed, job.max_steps, stop_on_success=job.stop_on_success,
+    traj = policy_episode(env, runner, init, seed, c.max_steps, stop_on_success=job.stop_on_success,
                           post_success_steps=job.post_success_steps)
     if not traj.frames or traj.length == 0:
         return {**out, "status": "failed", "errors": [traj.error], "seconds": time.perf_counter() - t0}
     episode = to_episode(env, traj, init_state_index=-1 if init is None else init, seed=seed, source="policy",
-                         fps=job.fps, extra={"policy": job.policy_path, "noise_scale": str(job.noise_scale),
+                         fps=c.control_freq, extra={"policy": job.policy_path, "noise_scale": str(job.noise_scale),
                                              **({"error": traj.error} if traj.error else {})})
     write_episode(job.path, episode)
     return {**out, "status": "kept", "success": traj.success or bool(episode.success.any()),
@@ -173,13 +164,9 @@ def collect_policy_episode(job: PolicyEpisodeJob) -> dict:
 @dataclass(frozen=True)
 class PolicyEvalJob:
     policy_path: str
-    suite: str
+    contract: TaskContract  # evaluating on another suite: `contract.on_suite(...)`
     task_id: int
     init_ids: tuple[int, ...]
-    cameras: tuple[str, ...]
-    image_size: int
-    chunk: int
-    max_steps: int
     termination: str  # "oracle": stop at the first success; "fixed": run max_steps, judge the last frame;
     #                   "reflector": stop when the reflector's R > eta, judge the frame it stopped at;
     #                   "all": run max_steps with the reflector watching, rows for all three
@@ -191,12 +178,12 @@ class PolicyEvalJob:
 _REFLECTORS: dict = {}
 
 
-def cached_reflector(path: str, image_size: int):
-    from worldenv_core.models.reflector import load_reflector
+def cached_reflector(path: str, contract: TaskContract):
+    from worldenv_core.models.checkpoint import load_checkpoint
 
     if path not in _REFLECTORS:
         _REFLECTORS.clear()
-        _REFLECTORS[path] = load_reflector(path, expect={"image_size": int(image_size)})[0]
+        _REFLECTORS[path] = load_checkpoint(path, "reflector", contract)[0]
     return _REFLECTORS[path]
 
 
@@ -205,24 +192,25 @@ def evaluate_policy_task(job: PolicyEvalJob) -> dict:
     termination="all" runs each episode to the horizon once, the reflector watching, and returns
     rows for oracle, fixed and reflector termination read off that one rollout."""
     from worldenv_core.envs.recording import policy_episode
-    from worldenv_core.models.reflector import ReflectorStop
+    from worldenv_core.rl.termination import ReflectorStop
     from worldenv_core.rl.termination import episode_outcomes
 
-    env = cached_env(job.suite, job.task_id, job.cameras, job.image_size, render=True)
-    runner = cached_runner(job.policy_path, False, 1.0, policy_contract(job.cameras, job.image_size, job.chunk))
+    c = job.contract
+    env = cached_env(c.suite, job.task_id, c.cameras, c.image_size, render=True)
+    runner = cached_runner(job.policy_path, False, 1.0, c)
     watch = job.termination == "all"
-    reflector = cached_reflector(job.reflector_path, job.image_size) if job.termination in ("reflector", "all") else None
+    reflector = cached_reflector(job.reflector_path, c) if job.termination in ("reflector", "all") else None
     rows, videos = [], {}
     for i in job.init_ids:
         t0 = time.perf_counter()
         stop = ReflectorStop(reflector, job.eta, env.instruction, runner.encoder, watch=watch) if reflector else None
-        traj = policy_episode(env, runner, i, 0, job.max_steps, stop_on_success=job.termination == "oracle",
+        traj = policy_episode(env, runner, i, 0, c.max_steps, stop_on_success=job.termination == "oracle",
                               stop_when=stop)
         flags = [f.success for f in traj.frames] or [False]
         scores = stop.scores if stop is not None else []
-        checks = [k * job.chunk for k in range(len(scores))]  # asked at every chunk boundary from step 0
+        checks = [k * c.chunk for k in range(len(scores))]  # asked at every chunk boundary from step 0
         modes = episode_outcomes(flags, checks, scores, job.eta)
-        base = {"suite": job.suite, "task_id": job.task_id, "task": env.task.name, "init_state": i,
+        base = {"suite": c.suite, "task_id": job.task_id, "task": env.task.name, "init_state": i,
                 "ever_succeeded": bool(any(flags)), "first_success_step": flags.index(True) if any(flags) else None,
                 "error": traj.error, "seconds": time.perf_counter() - t0}
         for mode in (("oracle", "fixed", "reflector") if watch else (job.termination,)):
@@ -233,5 +221,5 @@ def evaluate_policy_task(job: PolicyEvalJob) -> dict:
                          **({"reflector_scores": [round(x, 4) for x in scores]} if mode == "reflector" else {})})
         if i in job.video_ids and traj.frames:
             states = np.stack([f.sim_state for f in traj.frames])
-            videos[i] = env.render_states(states, [job.cameras[0]])[job.cameras[0]]
+            videos[i] = env.render_states(states, [c.cameras[0]])[c.cameras[0]]
     return {"rows": rows, "videos": videos}

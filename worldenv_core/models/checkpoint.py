@@ -18,6 +18,8 @@ import torch
 from hydra.utils import instantiate
 from safetensors.torch import load_file, save_file
 
+from worldenv_core.contract import TaskContract
+
 FORMAT = 1
 WEIGHTS, CONFIG = "model.safetensors", "config.json"
 
@@ -88,20 +90,33 @@ def read_config(path: str | Path) -> dict:
     return cfg
 
 
-def load_model(path: str | Path, expect: dict | None = None, map_location: str = "cpu") -> tuple[torch.nn.Module, dict]:
-    """Rebuild the module from its config and load its weights. `expect` names meta values the
-    caller's task contract requires (e.g. {"action_dim": 7, "chunk": 8}); a mismatch is an error
-    naming both values, not a silent reshape."""
+KINDS = ("policy", "worldsim", "reflector")
+
+
+def load_model(path: str | Path, map_location: str = "cpu") -> tuple[torch.nn.Module, dict]:
+    """Rebuild the module from its config and load its weights (no kind or contract check: use
+    `load_checkpoint` for the pipeline's models)."""
     path = Path(path)
     if path.is_file():
         path = path.parent
     cfg = read_config(path)
-    for key, want in (expect or {}).items():
-        have = cfg["meta"].get(key)
-        if have != want:
-            raise CheckpointError(f"checkpoint {path} was made for {key}={have!r}, but this run needs {key}={want!r}")
     model = instantiate(cfg["model"], _convert_="all")
     missing, unexpected = model.load_state_dict(load_weights(path / WEIGHTS, map_location), strict=False)
     if missing or unexpected:
         raise CheckpointError(f"{path}: weights do not fit the model (missing {missing[:5]}, unexpected {unexpected[:5]})")
     return model, cfg
+
+
+def load_checkpoint(path: str | Path, kind: str, contract: TaskContract | None = None,
+                    device: str = "cpu") -> tuple[torch.nn.Module, dict]:
+    """A policy, world model or reflector from its folder alone, in eval mode on `device`: the
+    folder must hold that `kind`, made for `contract`'s shapes (`TaskContract.check`). -> (model, meta)"""
+    if kind not in KINDS:
+        raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
+    meta = read_config(path)["meta"]
+    if meta.get("kind") != kind:
+        raise CheckpointError(f"{path} holds a {meta.get('kind')!r} checkpoint, not a {kind}")
+    if contract is not None:
+        contract.check(meta, f"checkpoint {path}")
+    model, cfg = load_model(path)
+    return model.to(device).eval(), cfg["meta"]

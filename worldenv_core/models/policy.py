@@ -96,18 +96,6 @@ class LaplacePolicy(nn.Module):
         return self.action_norm(a)
 
 
-def load_policy(path, expect: dict | None = None, device: str = "cpu") -> tuple[LaplacePolicy, dict]:
-    """Rebuild a policy from its checkpoint folder alone. `expect` holds the task contract values
-    the caller needs (cameras, image_size, chunk, action_dim); a mismatch is a clear error."""
-    from worldenv_core.models.checkpoint import CheckpointError, load_model, read_config
-
-    meta = read_config(path)["meta"]
-    if meta.get("kind") != "policy":
-        raise CheckpointError(f"{path} holds a {meta.get('kind')!r} checkpoint, not a policy")
-    model, cfg = load_model(path, expect=expect)
-    return model.to(device).eval(), cfg["meta"]
-
-
 class PolicyRunner:
     """Acts with a policy one chunk at a time: the caller renders only at chunk boundaries.
 
@@ -132,7 +120,7 @@ class PolicyRunner:
     def act_chunk(self, images: dict, proprio, instruction: str):
         """images: camera -> (H, W, 3) uint8 upright. Returns numpy (actions, mu, beta), each (K, 7);
         actions in simulator units."""
-        from worldenv_core.rl.laplace import laplace_sample
+        from worldenv_core.models.laplace import laplace_sample
 
         imgs = {c: torch.as_tensor(images[c]).permute(2, 0, 1)[None].to(self.device) for c in self.cameras}
         prop = torch.as_tensor(proprio, dtype=torch.float32)[None].to(self.device)

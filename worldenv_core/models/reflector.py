@@ -27,7 +27,11 @@ def subsample_indices(n: int, max_frames: int) -> torch.Tensor:
 
 
 class Reflector(nn.Module):
-    """Args:
+    """The trained reward head. Like every reward model (`vlm_reward.VLMYesNoReward` too) it offers
+    `scorer(instructions, encoder)` for growing rollouts and `score_prefixes(frames, instruction,
+    steps, encoder)` for a recorded video.
+
+    Args:
         frame_encoder: maps {camera: (B, 3, H, W) float [0, 1]} and the instruction (B, C) to (B, D).
         camera: the camera it watches (the world simulator's camera, so imagined video can be scored).
         input_size: frames are resized to this many pixels first (None: as given); success is
@@ -79,6 +83,18 @@ class Reflector(nn.Module):
         feats[mask] = self.encode_frames(frames[mask], lang[mask])  # padding is never encoded
         return self.aggregate(feats, mask, instruction)
 
+    reward_kind = "trained head"  # what the experiment report calls it
+
+    def scorer(self, instructions: list[str], encoder) -> "IncrementalScorer":
+        """An incremental scorer of a batch of growing videos, one instruction each."""
+        return IncrementalScorer(self, encoder(list(instructions)).to(self.lang_token.weight.device))
+
+    def score_prefixes(self, frames: torch.Tensor, instruction, steps, encoder=None) -> torch.Tensor:
+        """R at each of `steps` of one video; `instruction` as text (embedded with `encoder`) or embedded."""
+        if isinstance(instruction, str):
+            instruction = encoder([instruction])[0].to(self.lang_token.weight.device)
+        return score_prefixes(self, frames, instruction, steps)
+
     @torch.no_grad()
     def score_video(self, frames: torch.Tensor, instruction: torch.Tensor) -> torch.Tensor:
         """R for one whole prefix: frames (T, 3, H, W), instruction (C,) -> probability (scalar)."""
@@ -118,32 +134,6 @@ class IncrementalScorer:
         return torch.sigmoid(self.model.aggregate(feats, mask, self.instruction))
 
 
-def load_reflector(path, expect: dict | None = None, device: str = "cpu") -> tuple[Reflector, dict]:
-    """Rebuild a reflector from its checkpoint folder alone; `expect` checks the task contract."""
-    from worldenv_core.models.checkpoint import CheckpointError, load_model, read_config
-
-    meta = read_config(path)["meta"]
-    if meta.get("kind") != "reflector":
-        raise CheckpointError(f"{path} holds a {meta.get('kind')!r} checkpoint, not a reflector")
-    model, cfg = load_model(path, expect=expect)
-    return model.to(device).eval(), cfg["meta"]
-
-
-def check_eta(eta: float) -> float:
-    """The reward threshold must be a probability."""
-    if isinstance(eta, bool) or not isinstance(eta, (int, float)) or not 0.0 <= float(eta) <= 1.0:
-        raise ValueError(f"eta (the reflector's success threshold) must be in [0, 1], got {eta!r}")
-    return float(eta)
-
-
-def reflector_eta(path, eta: float | None) -> float:
-    """The threshold a stage stops at: `eta` when given, else the one the reflector checkpoint
-    carries (its train_reflector eta, or the one its eta cross-validation chose)."""
-    from worldenv_core.models.checkpoint import read_config
-
-    return check_eta(read_config(path)["meta"].get("eta", 0.5) if eta is None else eta)
-
-
 @torch.no_grad()
 def score_prefixes(model: Reflector, frames: torch.Tensor, instruction: torch.Tensor, steps) -> torch.Tensor:
     """R at each of `steps` (increasing frame indices) of one video (T+1, 3, H, W), seeing only
@@ -159,37 +149,3 @@ def score_prefixes(model: Reflector, frames: torch.Tensor, instruction: torch.Te
     for j, p in enumerate(picks):
         batch[j, : len(p)], mask[j, : len(p)] = feats[p], True
     return torch.sigmoid(model.aggregate(batch, mask, instruction[None].expand(n, -1)))
-
-
-def incremental_scorer(model, instruction: str, encoder):
-    """An incremental scorer of one video for either kind of reflector: the trained one (fed the
-    instruction's embedding from `encoder`) or the VLM yes/no mode (fed the text)."""
-    if getattr(model, "trainable", True) is False:
-        from worldenv_core.models.vlm_reward import VLMIncrementalScorer
-
-        return VLMIncrementalScorer(model, [instruction])
-    return IncrementalScorer(model, encoder([instruction]))
-
-
-def prefix_scores(model, frames: torch.Tensor, instruction: str, steps, encoder) -> torch.Tensor:
-    """`score_prefixes` for either kind of reflector (see `incremental_scorer`)."""
-    if getattr(model, "trainable", True) is False:
-        return model.score_prefixes(frames, instruction, steps)
-    return score_prefixes(model, frames, encoder([instruction])[0], steps)
-
-
-class ReflectorStop:
-    """Dynamic termination for one real-simulator episode: called with the boundary images of
-    every chunk, it adds the reflector camera's frame to an incremental scorer and answers
-    whether R > eta. `scores` keeps R at every check. watch=True only records (never stops): one
-    rollout to the horizon then serves every termination mode (`episode_outcomes`)."""
-
-    def __init__(self, model, eta: float, instruction: str, encoder, watch: bool = False):
-        self.scorer = incremental_scorer(model, instruction, encoder)
-        self.eta, self.cameras, self.scores, self.watch = check_eta(eta), [model.camera], [], watch
-
-    def __call__(self, images: dict) -> bool:
-        frame = torch.from_numpy(images[self.cameras[0]]).permute(2, 0, 1)[None]
-        self.scorer.add(frame)
-        self.scores.append(float(self.scorer.score()[0]))
-        return not self.watch and self.scores[-1] > self.eta

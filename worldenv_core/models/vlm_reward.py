@@ -21,7 +21,10 @@ PROMPT = ("USER: <image> The image shows a robot's camera over time, left to rig
 
 
 class VLMYesNoReward(nn.Module):
-    trainable = False  # train_reflector only evaluates it
+    """A reward model with the trained reflector's interface (`scorer`, `score_prefixes`) and no
+    trainable parameters: train_reflector only evaluates it."""
+
+    reward_kind = "VLM yes/no"
 
     def __init__(self, pretrained_path: str, camera: str = "agentview", grid_frames: int = 4, prompt: str = PROMPT,
                  yes_token: str = "yes", no_token: str = "no", max_frames: int = 32):
@@ -57,8 +60,11 @@ class VLMYesNoReward(nn.Module):
         answer = logits[torch.arange(len(videos)), last][:, self.answer_ids]
         return torch.softmax(answer.float(), dim=-1)[:, 0]
 
+    def scorer(self, instructions: list[str], encoder=None) -> "VLMIncrementalScorer":
+        return VLMIncrementalScorer(self, instructions)
+
     @torch.no_grad()
-    def score_prefixes(self, frames: torch.Tensor, instruction: str, steps) -> torch.Tensor:
+    def score_prefixes(self, frames: torch.Tensor, instruction: str, steps, encoder=None) -> torch.Tensor:
         """R at each of `steps` of one video, seeing only the frames at those steps (as `score_prefixes`
         of the trained reflector)."""
         chosen = frames[torch.as_tensor(list(steps))]

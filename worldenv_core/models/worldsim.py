@@ -142,12 +142,12 @@ class WorldSimulator(nn.Module):
             (0 = the current frame); EVAC's sparse memory.
         sampling_steps: Euler steps of the flow sampler at inference (1-4 keeps it fast).
         detail_gate: how imagined frames are rendered: > 0 puts the last real frame's fine detail
-            back where the decoded content has not changed (worldenv_core/envs/imagined.py); 0 off.
+            back where the decoded content has not changed (worldenv_core/imagination/simulator.py); 0 off.
         noise_scale: the sampler's temperature, the scale of the noise the flow starts from. 1 draws
             samples of the learned distribution; 0 starts every rollout from the same point, and
             with one Euler step gives the flow's conditional mean (v(x0, 0) = E[x1] - x0), the
             prediction with the least squared error: sharper for metrics, no per-rollout variety.
-        static_snap: open-loop drift control (worldenv_core/envs/imagined.py): latent positions whose
+        static_snap: open-loop drift control (worldenv_core/imagination/simulator.py): latent positions whose
             predicted change from the last real frame is below this (mean |change| over channels,
             in latent std units) are snapped back to that frame; 0 = off.
     """

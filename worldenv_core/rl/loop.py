@@ -72,7 +72,7 @@ def collect_rollouts(policy, env, contexts: list, n_rollouts: int, encoder,
     ~ Laplace(mu, exp(beta)); all C x N rollouts advance together until every one is done.
     `observer` (e.g. `ImaginedRecorder`) sees the reset state and every step: `on_reset(state)`,
     `on_step(actions, mu, beta, state)` with actions and mu in the simulator's units."""
-    from worldenv_core.rl.laplace import laplace_log_prob, laplace_sample
+    from worldenv_core.models.laplace import laplace_log_prob, laplace_sample
 
     if n_rollouts < 2:
         raise ValueError(f"RLOO needs at least 2 rollouts per context, got N={n_rollouts}")
@@ -106,7 +106,7 @@ def ppo_update(policy, optimizer, batch: RolloutBatch, epochs: int, epsilon: flo
                generator: torch.Generator | None = None) -> dict:
     """K epochs of eq. 5 over the batch's rollouts in minibatches of whole rollouts; the loss of
     each minibatch is normalised by its summed trajectory lengths."""
-    from worldenv_core.rl.laplace import laplace_log_prob
+    from worldenv_core.models.laplace import laplace_log_prob
 
     policy.train()
     r, c = batch.mask.shape[:2]

@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 
 def success_labels(success: np.ndarray) -> np.ndarray:
@@ -106,3 +107,35 @@ def termination_metrics(outcomes: list[StopOutcome]) -> dict:
         "timing_error_median": float(np.median(timing)) if timing else float("nan"),
         "early_stop_error_mean": float(np.mean([o.t_success - o.t_stop for o in early])) if early else float("nan"),
     }
+
+
+def check_eta(eta: float) -> float:
+    """The reward threshold must be a probability."""
+    if isinstance(eta, bool) or not isinstance(eta, (int, float)) or not 0.0 <= float(eta) <= 1.0:
+        raise ValueError(f"eta (the reflector's success threshold) must be in [0, 1], got {eta!r}")
+    return float(eta)
+
+
+def reflector_eta(path, eta: float | None) -> float:
+    """The threshold a stage stops at: `eta` when given, else the one the reflector checkpoint
+    carries (its train_reflector eta, or the one its eta cross-validation chose)."""
+    from worldenv_core.models.checkpoint import read_config
+
+    return check_eta(read_config(path)["meta"].get("eta", 0.5) if eta is None else eta)
+
+
+class ReflectorStop:
+    """Dynamic termination for one real-simulator episode: called with the boundary images of
+    every chunk, it adds the reflector camera's frame to an incremental scorer and answers
+    whether R > eta. `scores` keeps R at every check. watch=True only records (never stops): one
+    rollout to the horizon then serves every termination mode (`episode_outcomes`)."""
+
+    def __init__(self, model, eta: float, instruction: str, encoder, watch: bool = False):
+        self.scorer = model.scorer([instruction], encoder)
+        self.eta, self.cameras, self.scores, self.watch = check_eta(eta), [model.camera], [], watch
+
+    def __call__(self, images: dict) -> bool:
+        frame = torch.from_numpy(images[self.cameras[0]]).permute(2, 0, 1)[None]
+        self.scorer.add(frame)
+        self.scores.append(float(self.scorer.score()[0]))
+        return not self.watch and self.scores[-1] > self.eta

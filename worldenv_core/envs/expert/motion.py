@@ -10,7 +10,9 @@ return value is ``True`` on success, ``False`` on timeout) so the caller can dec
 
 Public, stable names (other modules import them; do not rename):
 ``GRIP_OPEN, GRIP_CLOSE, make_action, pose_action, move_to, move_through, hold,
-open_gripper, close_gripper, lift, move_relative, rotate_to``.
+open_gripper, close_gripper, lift, move_relative, rotate_to``; and for orientations other
+than top-down (the articulated and push skills): ``servo, rotate_smoothly, grip,
+set_gripper, rotation_about, yaw_for_fingers_along, geom_extent_along, fingertip_depth``.
 """
 from __future__ import annotations
 
@@ -195,3 +197,86 @@ def lift(ctx: ExpertContext, z: float, gripper: float = GRIP_CLOSE, **kw) -> Ite
     p[2] = max(z, p[2])
     kw.setdefault("tol", 0.01)
     return (yield from move_to(ctx, p, gripper=gripper, **kw))
+
+
+# ---------------------------------------------------------------------------- any orientation
+# The primitives above hold the gripper top-down; these servo to an arbitrary orientation
+# matrix (side grasps, pitched pushes) and supply the geometry the contact skills plan with.
+def rotation_about(axis: np.ndarray, ang: float) -> np.ndarray:
+    """Rotation matrix about a unit ``axis`` by ``ang`` (Rodrigues)."""
+    k = axis / (np.linalg.norm(axis) + 1e-12)
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(ang) * K + (1 - np.cos(ang)) * (K @ K)
+
+
+def yaw_for_fingers_along(ctx: ExpertContext, direction: np.ndarray) -> float:
+    """Top-down yaw such that the fingers close along the horizontal ``direction``."""
+    f = ctx.finger_axis()
+    cur = ctx.eef_yaw()
+    a_f = np.arctan2(f[1], f[0])
+    a_d = np.arctan2(direction[1], direction[0])
+    return float(cur + (a_d - a_f))
+
+
+def geom_extent_along(ctx: ExpertContext, g: int, d: np.ndarray) -> float:
+    """Half-extent of geom ``g``'s local AABB projected on world direction ``d``."""
+    R = ctx.data.geom_xmat[g].reshape(3, 3)
+    h = ctx.model.geom_aabb[g][3:]
+    return float(np.sum(np.abs(R.T @ d) * h))
+
+
+def fingertip_depth(ctx: ExpertContext) -> float:
+    """How far the lowest finger point sits below the grip site (top-down gripper)."""
+    g = ctx.robot.gripper
+    lows = []
+    for key in ("left_finger", "right_finger"):
+        for n in g.important_geoms[key]:
+            gid = ctx.model.geom_name2id(n)
+            lows.append(ctx.data.geom_xpos[gid][2] - geom_extent_along(ctx, gid, np.array([0, 0, 1.0])))
+    return float(ctx.eef_pos()[2] - min(lows))
+
+
+def set_gripper(ctx: ExpertContext, command: float, steps: int, R: np.ndarray | None = None) -> Iterator[Action]:
+    """Drive the gripper for exactly ``steps`` steps (4 steps ~ a full swing) holding pose.
+
+    ``R`` is the orientation to hold (default: the current top-down yaw)."""
+    pos = ctx.eef_pos()
+    R = target_mat_for(ctx, None) if R is None else R
+    for _ in range(steps):
+        yield pose_action(ctx, pos, gripper=command, target_mat=R)
+
+
+def grip(ctx: ExpertContext, command: float, R: np.ndarray, min_steps: int = 6, max_steps: int = 15) -> Iterator[Action]:
+    """Open/close holding position and an arbitrary orientation; stop when the fingers settle."""
+    pos = ctx.eef_pos()
+    prev = ctx.gripper_opening()
+    for k in range(max_steps):
+        yield pose_action(ctx, pos, gripper=command, target_mat=R)
+        cur = ctx.gripper_opening()
+        if k + 1 >= min_steps and abs(cur - prev) < 2e-4:
+            break
+        prev = cur
+
+
+def servo(ctx: ExpertContext, pos: np.ndarray, R: np.ndarray, gripper: float, tol: float, max_steps: int,
+          max_speed: float = 1.0, rot_tol: float = 0.06, settle: int = 0) -> Iterator[Action]:
+    """move_to with an arbitrary target orientation matrix."""
+    for _ in range(max_steps):
+        if np.linalg.norm(pos - ctx.eef_pos()) < tol and np.linalg.norm(_rot_error(ctx, R)) < rot_tol:
+            break
+        yield pose_action(ctx, pos, gripper=gripper, target_mat=R, max_speed=max_speed)
+    for _ in range(settle):
+        yield pose_action(ctx, pos, gripper=gripper, target_mat=R, max_speed=max_speed)
+
+
+def rotate_smoothly(ctx: ExpertContext, pos: np.ndarray, R_goal: np.ndarray, gripper: float,
+                    max_rate: float = 0.25, max_steps: int = 25, done_ang: float = 0.2) -> Iterator[Action]:
+    """Servo to ``pos`` while turning to ``R_goal`` along the geodesic, at most ``max_rate``
+    rad of new target per step (one large rotation command makes the OSC flail)."""
+    for _ in range(max_steps):
+        err = _rot_error(ctx, R_goal)
+        ang = float(np.linalg.norm(err))
+        if ang < done_ang and np.linalg.norm(pos - ctx.eef_pos()) < 0.03:
+            break
+        R_t = R_goal if ang < 1e-6 else rotation_about(err / ang, min(ang, max_rate)) @ ctx.eef_mat()
+        yield pose_action(ctx, pos, gripper=gripper, target_mat=R_t)

@@ -10,9 +10,13 @@ from typing import Iterator
 
 import numpy as np
 
-from .articulated import Action, _DEBUG, _fingertip_depth, _geom_extent_along, _set_gripper, _yaw_for_fingers_along
 from .context import ExpertContext
-from .motion import GRIP_CLOSE, move_to, pose_action, target_mat_for
+from .motion import (
+    GRIP_CLOSE, Action, fingertip_depth, geom_extent_along, move_to, pose_action, set_gripper, target_mat_for,
+    yaw_for_fingers_along,
+)
+
+_DEBUG = False  # print the dish's floor and the push height
 
 
 def push_to(ctx: ExpertContext, obj: str, region: str, max_steps: int = 160) -> Iterator[Action]:
@@ -27,13 +31,13 @@ def push_to(ctx: ExpertContext, obj: str, region: str, max_steps: int = 160) -> 
     radius = float(np.max(half))
     height = float(hi[2] - lo[2])
     dish = height < 0.035 and radius > 0.05
-    tip = _fingertip_depth(ctx)
+    tip = fingertip_depth(ctx)
     if dish:
         # floor of the dish = top of the collision geom nearest the centre
         c = ctx.pos(obj)
         gs = ctx.geom_ids(obj)
         gc = min(gs, key=lambda g: float(np.linalg.norm(ctx.data.geom_xpos[g][:2] - c[:2])))
-        floor = float(ctx.data.geom_xpos[gc][2]) + _geom_extent_along(ctx, gc, np.array([0, 0, 1.0]))
+        floor = float(ctx.data.geom_xpos[gc][2]) + geom_extent_along(ctx, gc, np.array([0, 0, 1.0]))
         push_z = floor + tip - 0.006  # press lightly on the floor so the finger cannot ride up
         dists = [float(np.linalg.norm(ctx.data.geom_xpos[g][:2] - c[:2])) for g in gs if g != gc]
         rim_r = float(np.median(dists)) if dists else radius
@@ -64,8 +68,8 @@ def push_to(ctx: ExpertContext, obj: str, region: str, max_steps: int = 160) -> 
     size = np.abs(ctx.site_size(region)[:2])
     tol = float(min(np.min(size) * 0.4, 0.02))
     d0 = dir_xy()
-    yaw = _yaw_for_fingers_along(ctx, np.array([-d0[1], d0[0], 0.0]))
-    yield from _set_gripper(ctx, GRIP_CLOSE, 2)
+    yaw = yaw_for_fingers_along(ctx, np.array([-d0[1], d0[0], 0.0]))
+    yield from set_gripper(ctx, GRIP_CLOSE, 2)
     start = contact(lead)
     yield from move_to(ctx, start + np.array([0, 0, 0.10]), yaw=yaw, gripper=GRIP_CLOSE, tol=0.015, max_steps=60)
     yield from move_to(ctx, start, yaw=yaw, gripper=GRIP_CLOSE, tol=0.008, max_steps=40, max_speed=0.6)

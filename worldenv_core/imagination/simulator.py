@@ -63,17 +63,14 @@ class ImaginedSimulator:
 
     @classmethod
     def from_checkpoint(cls, path, task_id: int, sampling_steps: int | None = None, device="cpu",
-                        expect: dict | None = None) -> "ImaginedSimulator":
+                        contract=None) -> "ImaginedSimulator":
         """A trained world simulator (a train_worldsim checkpoint folder) set up for one task:
         its kinematic model and that task's camera travel in the checkpoint's metadata."""
-        from worldenv_core.models.checkpoint import CheckpointError, load_model, read_config
+        from worldenv_core.models.checkpoint import CheckpointError, load_checkpoint
 
-        meta = read_config(path)["meta"]
-        if meta.get("kind") != "worldsim":
-            raise CheckpointError(f"{path} holds a {meta.get('kind')!r} checkpoint, not a world simulator")
+        model, meta = load_checkpoint(path, "worldsim", contract)
         if str(task_id) not in meta["cameras"]:
             raise CheckpointError(f"world simulator {path} was trained on tasks {sorted(meta['cameras'])}, not task {task_id}")
-        model, _ = load_model(path, expect=expect)
         return cls(model, NextStateModel(**meta["kinematics"]), PinholeCamera.from_dict(meta["cameras"][str(task_id)]),
                    sampling_steps=sampling_steps, device=device)
 

@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import torch
 
-from worldenv_core.envs.imagined import ImaginedSimulator
+from worldenv_core.imagination.simulator import ImaginedSimulator
 from worldenv_core.kinematics.camera import PinholeCamera
-from worldenv_core.models.reflector import IncrementalScorer, check_eta
+from worldenv_core.rl.termination import check_eta
 
 
 @dataclass
@@ -44,11 +44,12 @@ class ImaginedEnv:
     def __init__(self, sim: ImaginedSimulator, cameras: dict[int, PinholeCamera], reflector, encoder, eta: float,
                  horizon: int):
         """sim: the world simulator + kinematics; cameras: task id -> the world model's camera in that
-        task's scene; reflector: a trained `Reflector` watching the same camera; encoder: instruction
+        task's scene; reflector: a reward model (the trained `Reflector`, or the VLM yes/no one)
+        watching the same camera; encoder: instruction
         strings -> embeddings (the frozen MiniLM)."""
         self.sim, self.cameras, self.reflector, self.encoder = sim, cameras, reflector.eval(), encoder
         self.eta, self.horizon, self.chunk = check_eta(eta), int(horizon), sim.model.chunk
-        self.scorer: IncrementalScorer | None = None
+        self.scorer = None  # the reward model's incremental scorer of the current rollouts
         self.state: StepResult | None = None
         self.decode = "last"  # "all" also returns every frame of each chunk (costs a decode per frame)
 
@@ -60,7 +61,7 @@ class ImaginedEnv:
         frames = torch.stack([c.frame for c in contexts]).to(device)
         proprio = torch.stack([torch.as_tensor(c.proprio) for c in contexts]).double().to(device)
         self.sim.reset(frames[:, None], proprio, cameras=[self.cameras[c.task_id] for c in contexts])
-        self.scorer = IncrementalScorer(self.reflector, self.encoder([c.instruction for c in contexts]).to(device))
+        self.scorer = self.reflector.scorer([c.instruction for c in contexts], self.encoder)
         self.scorer.add(frames)
         b = len(contexts)
         self.state = StepResult(frames=frames, proprio=proprio.float(), reward=self.scorer.score(),

@@ -1,4 +1,5 @@
-"""`make bench`: what the real simulator and the world simulator cost on this machine, side by side.
+"""`make bench` (`python -m benchmarks.bench`): what the real simulator and the world simulator
+cost on this machine, side by side.
 
 Prints medians over repeats (shared machines are noisy): env build, one physics-only step,
 one camera render, the throughput of expert collection (kept frames per second), and imagined
@@ -70,7 +71,7 @@ def world_model_speed(suite: str, task_id: int, image_size: int, camera: str, re
     from hydra.utils import instantiate
     from omegaconf import OmegaConf
 
-    from worldenv_core.envs.imagined import ImaginedSimulator
+    from worldenv_core.imagination.simulator import ImaginedSimulator
     from worldenv_core.kinematics import NextStateModel, PinholeCamera
     from worldenv_core.models.checkpoint import load_model
     from worldenv_core.stage import CONF_DIR

@@ -18,7 +18,7 @@ import torch
 
 from worldenv_core.data.episode import JOINT_DIM, Episode, EpisodeMeta
 from worldenv_core.data.mcap_io import write_imagined_episode
-from worldenv_core.rl.imagined_env import Context, ImaginedEnv, StepResult
+from worldenv_core.imagination.env import Context, ImaginedEnv, StepResult
 from worldenv_core.rl.loop import collect_rollouts
 
 # What an imagined episode cannot know; written as zeros / empty and said so in its metadata.

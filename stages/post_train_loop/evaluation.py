@@ -1,0 +1,117 @@
+"""post_train_loop's evaluations and its section of the experiment report: the policy in the
+real simulator, in imagination on fixed contexts and noise (so every evaluation point compares),
+imagined rollouts recorded as MCAP, and the table and curves of the post-training runs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from worldenv_core.contract import TaskContract
+from worldenv_core.envs.collection import PolicyEvalJob, evaluate_policy_task
+from worldenv_core.envs.tasks import get_task
+from worldenv_core.manifest import StageRecord
+from worldenv_core.parallel import run_jobs
+from worldenv_core.report import ReportContext, markdown_table, short_run, titled
+from worldenv_core.imagination.env import Context
+from worldenv_core.imagination.recording import record_imagined_rollouts, write_imagined_rollouts
+from worldenv_core.rl.loop import collect_rollouts
+from worldenv_core.viz import plot_history
+
+# Measured at evaluations (the tracker's "eval/" group); the rest of an iteration's entry is training.
+EVAL_KEYS = ("real_success", "imagined_reward", "imagined_success", "imagined_real_gap")
+
+
+def with_gap(entry: dict) -> dict:
+    """The imagined-vs-real gap where both were measured: the reflector's imagined success rate on
+    the fixed contexts minus the real success rate (positive: imagination is too generous)."""
+    if "real_success" in entry and "imagined_success" in entry:
+        entry["imagined_real_gap"] = entry["imagined_success"] - entry["real_success"]
+    return entry
+
+
+def _fixed_picks(contexts: list[Context], n: int, seed: int) -> tuple[list[Context], torch.Generator]:
+    """`n` contexts and the noise generator, the same at every evaluation point."""
+    g = torch.Generator().manual_seed(seed)
+    picks = torch.randperm(len(contexts), generator=g)[:min(n, len(contexts))].tolist()
+    return [contexts[i] for i in picks], g
+
+
+def imagined_success(policy, env, contexts: list[Context], n_contexts: int, n_rollouts: int, encoder, seed: int) -> dict:
+    """The policy in imagination on a fixed set of contexts with fixed noise: the same rollouts'
+    worth of randomness for the SFT and every later policy, so the numbers are comparable and
+    show whether post-training improved the objective it optimises (mean reward, reflector
+    success rate), whatever the real simulator says."""
+    picked, g = _fixed_picks(contexts, n_contexts, seed + 7_777)
+    with torch.no_grad():
+        batch = collect_rollouts(policy, env, picked, n_rollouts, encoder, generator=g)
+    return {"imagined_reward": float(batch.rewards.mean()),
+            "imagined_success": float(batch.by_reflector.float().mean())}
+
+
+def record_imagined(policy, env, contexts: list[Context], n_contexts: int, contract: TaskContract, encoder,
+                    camera: str, out_dir: Path, extra: dict, seed: int) -> list[Path]:
+    """A few imagined rollouts of the policy, every frame, written as MCAP episodes (the same
+    fixed contexts and noise at every evaluation, so the files show what training changed)."""
+    picked, g = _fixed_picks(contexts, n_contexts, seed + 9_999)
+    names = {t: get_task(contract.suite, t).name for t in {c.task_id for c in picked}}
+    rollouts = record_imagined_rollouts(policy, env, picked, 2, encoder, contract.suite, names, camera, extra=extra,
+                                        generator=g, fps=contract.control_freq)
+    return write_imagined_rollouts(rollouts, out_dir, env.eta)
+
+
+def real_success(policy_path: str, contract: TaskContract, init_states: int, workers, progress: bool) -> float:
+    """Success in the real simulator (oracle termination) on the first benchmark init states."""
+    jobs = [PolicyEvalJob(policy_path=policy_path, contract=contract, task_id=t, init_ids=tuple(range(init_states)),
+                          termination="oracle") for t in contract.resolved_task_ids()]
+    rows = [r for out in run_jobs(evaluate_policy_task, jobs, workers=workers, desc="real-sim eval",
+                                  progress=progress, unit="task") for r in out["rows"]]
+    return sum(r["success"] for r in rows) / len(rows)
+
+
+def imagined_span(loop: StageRecord) -> str:
+    """The imagined evaluation on fixed contexts and noise: first and last evaluation point."""
+    rew, ok = loop.metrics.get("imagined_reward", {}), loop.metrics.get("imagined_success", {})
+    if len(rew) < 2:
+        return "not run"
+    a, b = min(rew, key=int), max(rew, key=int)
+    return f"{rew[a]:.3f} -> {rew[b]:.3f}, {ok[a]:.3f} -> {ok[b]:.3f}"
+
+
+def _span(history: list[dict], key: str, n: int = 5) -> str:
+    """Mean of `key` over the first and the last n iterations: 'first -> last'."""
+    vals = [h[key] for h in history if key in h and h.get("step", 0) > 0]
+    if not vals:
+        return ""
+    k = min(n, max(1, len(vals) // 2))
+    return f"{sum(vals[:k]) / k:.3g} -> {sum(vals[-k:]) / k:.3g}"
+
+
+def section(ctx: ReportContext, limit: int = 6) -> list[str]:
+    """One row per recent post_train_loop run: its settings, which world model and reflector it
+    imagined with (so the "without extra data" ablation shows as its own row), and how the
+    imagined reward, the reflector's success rate and the real success moved; the curves of the
+    newest run that measured real success during training (the paper's Figure 3)."""
+    runs = ctx.find("post_train_loop")[-limit:]
+    if not runs:
+        return []
+    rows = []
+    for r in runs:
+        h = ctx.history(r)
+        curve = ", ".join(f"{k}: {100 * v:.0f} %" for k, v in r.metrics.get("real_success", {}).items()) or "not run"
+        rows.append([r.tags.get("eta"), r.tags.get("n_rollouts"), r.metrics.get("iterations"),
+                     ctx.input_tags(r, "train_worldsim").get("data", "?"), ctx.input_tags(r, "train_reflector").get("data", "?"),
+                     _span(h, "mean_reward"), _span(h, "reflector_success_rate"), _span(h, "episode_length"),
+                     imagined_span(r), curve, f"{r.wall_time_s:.0f}"])
+    lines = markdown_table(["eta", "N", "iterations", "world model data", "reflector data",
+                            "imagined reward (first 5 -> last 5 it.)", "reflector success rate", "episode length",
+                            "fixed contexts: imagined reward, success (SFT -> last)", "real success by iteration",
+                            "wall s"], rows)
+    shown = next((r for r in reversed(runs) if len(r.metrics.get("real_success", {})) > 1), runs[-1])
+    history = ctx.history(shown)
+    if history:  # redrawn from the run's log, so older runs get the current layout too
+        name = short_run(str(shown.files("plot")[0].path))
+        plot_history(history, ctx.out / "post_training.png", f"post_train_loop {name}")
+        lines += ["", f"![post-training curves of `{name}`](post_training.png)"]
+    return titled("Post-training (LOOP in imagination)", lines)

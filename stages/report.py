@@ -1,0 +1,67 @@
+"""The experiment report, `<experiment>/report/report.md`, rebuilt from the manifest after every
+evaluation: the sum of the stages' sections in pipeline order (each stage's
+`evaluation.section(ctx)`), then the wall time of each stage's newest run.
+
+    python -m stages.report outputs/libero_goal-small libero_goal
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from stages.collect import evaluation as collect
+from stages.evaluate import evaluation as evaluate
+from stages.post_train_loop import evaluation as post_train_loop
+from stages.train_reflector import evaluation as train_reflector
+from stages.train_worldsim import evaluation as train_worldsim
+from worldenv_core.manifest import Manifest, StageRecord
+from worldenv_core.report import ReportContext, markdown_table, titled
+
+# Results first (what a reader came for), then how the parts that produced them did.
+SECTIONS = (evaluate.section, post_train_loop.section, train_worldsim.section, train_reflector.section, collect.section)
+
+
+def write_report(experiment_dir: str | Path, task: str) -> Path:
+    ctx = ReportContext(Manifest(experiment_dir), task, Path(experiment_dir) / "report")
+    ctx.out.mkdir(parents=True, exist_ok=True)
+    lines = [f"# {task}: experiment report"]
+    for section in SECTIONS:
+        lines += section(ctx)
+    lines += wall_time_section(ctx)
+    path = ctx.out / "report.md"
+    tmp = path.with_suffix(".md.tmp")
+    tmp.write_text("\n".join(lines) + "\n")
+    tmp.replace(path)
+    return path
+
+
+def _producer(record: StageRecord, records: list[StageRecord]) -> StageRecord:
+    """The first record of the same stage whose outputs hold this one's trained weights or episodes
+    (by content): the run that did the work a later re-run found finished."""
+    made = {a.sha256 for a in record.outputs  # the weights, not config.json: its metadata names the run
+            if a.kind == "episodes" or (a.kind == "checkpoint" and a.path.endswith(".safetensors"))}
+    return next((r for r in records if made and r.stage == record.stage
+                 and made <= {a.sha256 for a in r.outputs}), record)
+
+
+def wall_time_section(ctx: ReportContext) -> list[str]:
+    latest = {}
+    for r in ctx.records:
+        if r.tags.get("task") == ctx.task:
+            latest[(r.stage, json.dumps(r.tags, sort_keys=True))] = r
+    rows = []
+    for r in latest.values():
+        made = _producer(r, ctx.records)
+        rows.append([r.stage, ", ".join(f"{k}={v}" for k, v in r.tags.items() if k != "task"), f"`{made.id}`",
+                     f"{made.wall_time_s:.0f}"])
+    return titled("Wall time per stage", [
+        "Newest run of each; a re-run that found the work done is timed by the run that produced its files "
+        "(its last sitting, if it was resumed).", "", *markdown_table(["stage", "tags", "record", "wall s"], rows)])
+
+
+if __name__ == "__main__":
+    if len(sys.argv) != 3:
+        raise SystemExit("usage: python -m stages.report <experiment_dir> <task>")
+    print(write_report(sys.argv[1], sys.argv[2]))

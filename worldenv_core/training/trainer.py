@@ -1,0 +1,181 @@
+"""The one training loop (tdmpc2's Trainer): every training stage hands it a model, its
+optimizers and one or more `Phase`s (a stretch of steps with its own batches and update), and it
+does the rest the same way for all: restore from the work dir's newest checkpoint, a progress bar
+with ETA, running means into the history and the tracker, periodic and final checkpoints,
+evaluations at fixed points, the curves plot and the manifest outputs.
+
+Resume is bit-identical: a phase's batches are a function of its step alone (`batches`,
+`per_step`), the RNG states travel in the checkpoint, and `extra_state` carries anything else
+(EMA weights, mined hard negatives are re-derived by the stage from the step)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from tqdm import tqdm
+
+from worldenv_core.models.checkpoint import save_model
+from worldenv_core.training.checkpoints import Checkpoints
+from worldenv_core.tracking import Tracker
+from worldenv_core.viz import plot_history
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Phase:
+    """`steps` optimisation steps of one kind. `batches(start)` yields the phase's batches from its
+    own step `start` on (0 when it begins, more when a run resumes inside it); `step(batch)` makes
+    one update and returns the values to log (losses, diagnostics)."""
+
+    name: str
+    steps: int
+    batches: Callable[[int], Iterator]
+    step: Callable[[Any], dict]
+
+
+def optimize(loss: torch.Tensor, optimizer: torch.optim.Optimizer, clip: float | None = None, params=None) -> None:
+    """One gradient step on `loss`, its gradient norm clipped to `clip` over `params` (default:
+    every parameter the optimizer updates)."""
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    if clip is not None:
+        params = params if params is not None else [p for g in optimizer.param_groups for p in g["params"]]
+        torch.nn.utils.clip_grad_norm_(params, clip)
+    optimizer.step()
+
+
+class RunningMeans:
+    """Per-step values (losses, diagnostics) averaged into one `history` entry every `every`
+    steps and at the last, shown on the progress bar and sent to the tracker (TensorBoard, ...)."""
+
+    def __init__(self, history: list[dict], every: int, bar=None, tracker=None, postfix: tuple[str, ...] | None = None):
+        self.history, self.every, self.bar, self.tracker = history, int(every), bar, tracker
+        self.postfix = postfix  # the keys the bar shows (None: all)
+        self.values: dict[str, list[float]] = {}
+
+    def add(self, **values: float) -> None:
+        for k, v in values.items():
+            self.values.setdefault(k, []).append(float(v))
+
+    def end_step(self, done: int, total: int) -> None:
+        if done % self.every and done != total:
+            return
+        entry = {"step": done, **{k: sum(v) / len(v) for k, v in self.values.items()}}
+        self.history.append(entry)
+        self.values.clear()
+        if self.tracker is not None:
+            self.tracker.log(entry, done)
+        if self.bar is not None:
+            self.bar.set_postfix({k: f"{v:.4f}" for k, v in entry.items()
+                                  if k != "step" and (self.postfix is None or k in self.postfix)})
+
+
+class Trainer:
+    """Trains `model` in `work` (its `checkpoints/` are what a re-run resumes from).
+
+    model_config, meta: what the saved checkpoints rebuild the model from and say about it.
+    extra_state: () -> dict of more state to checkpoint (restored into `self.extra`).
+    overall: a progress bar over several trainings (cross-validation folds) this one advances."""
+
+    def __init__(self, work: str | Path, model: torch.nn.Module, optimizers: dict[str, torch.optim.Optimizer], *,
+                 model_config: dict, meta: dict, log_every: int, checkpoint_every: int, tracker: Tracker | None = None,
+                 desc: str = "train", extra_state: Callable[[], dict] | None = None, progress: bool = True,
+                 overall=None, postfix: tuple[str, ...] | None = None, keep: int = 2):
+        self.work, self.model, self.optimizers = Path(work), model, optimizers
+        self.model_config, self.meta = model_config, meta
+        self.log_every, self.checkpoint_every = int(log_every), int(checkpoint_every)
+        self.tracker = tracker or Tracker()
+        self.desc, self.extra_state, self.progress, self.overall, self.postfix = desc, extra_state, progress, overall, postfix
+        self.checkpoints = Checkpoints(self.work, keep)
+        self.step, self.history = self.checkpoints.restore(model, optimizers)
+        self.extra = self.checkpoints.extra
+        self.wall_s = 0.0  # this sitting's training time
+
+    def save(self, done: int) -> Path:
+        """A resumable checkpoint at step `done` (the model, optimizers, RNG states, history)."""
+        return self.checkpoints.save(done, self.model, self.model_config, self.meta, self.optimizers, self.history,
+                                     extra=self.extra_state() if self.extra_state else None)
+
+    def fit(self, phases: list[Phase], after_step: Callable[[int], None] | None = None,
+            evaluate: Callable[[int, Path | None], dict] | None = None, evaluate_every: int = 0) -> list[dict]:
+        """Run `phases` one after another from the restored step to the end. `after_step(done)` runs
+        after every step (before its checkpoint). `evaluate(done, checkpoint)` measures the model
+        before the first step (checkpoint None: the starting model), every `evaluate_every` steps
+        and at the end, on the checkpoint just saved; its values join that step's history entry
+        and go to the tracker's "eval" group. -> the history."""
+        total = sum(p.steps for p in phases)
+        if self.overall is not None:
+            self.overall.update(self.step)  # what earlier sittings (or a finished fold) did
+        bar = tqdm(range(self.step, total), initial=self.step, total=total, desc=self.desc, dynamic_ncols=True,
+                   disable=not self.progress, position=0 if self.overall is None else 1, leave=self.overall is None)
+        running = RunningMeans(self.history, self.log_every, bar, self.tracker, self.postfix)
+        if evaluate is not None and self.step == 0 and not self.history:
+            self._record_eval(0, evaluate(0, None))
+        t0 = time.perf_counter()
+        current, batches = None, None
+        for step in bar:
+            phase, start = _phase_at(phases, step)
+            if phase is not current:  # entering a phase, or resuming inside one
+                batches = None  # the last phase's data goes before the next one's is made
+                current, batches = phase, iter(phase.batches(step - start))
+            self.model.train()
+            running.add(**phase.step(next(batches)))
+            done = self.step = step + 1
+            running.end_step(done, total)
+            if self.overall is not None:
+                self.overall.update(1)
+            if after_step is not None:
+                after_step(done)
+            evaluating = evaluate is not None and (done == total or (evaluate_every and done % evaluate_every == 0))
+            if evaluating or done % self.checkpoint_every == 0 or done == total:
+                path = self.save(done)
+            if evaluating:
+                self._record_eval(done, evaluate(done, path))
+                self.save(done)  # again, with the evaluation in its history
+        bar.close()
+        self.wall_s += time.perf_counter() - t0
+        return self.history
+
+    def _record_eval(self, step: int, values: dict) -> None:
+        entry = next((h for h in reversed(self.history) if h.get("step") == step), None)
+        if entry is None:
+            entry = {"step": step}
+            self.history.append(entry)
+        entry.update(values)
+        self.tracker.log(values, step, group="eval")
+
+    def save_final(self, path: str | Path, model: torch.nn.Module | None = None, **meta) -> Path:
+        """The trained model (or another one, e.g. its EMA) as a self-describing checkpoint folder."""
+        return save_model(path, (model or self.model).cpu(), self.model_config, {**self.meta, "step": self.step, **meta})
+
+    def finish(self, stage, final: Path, title: str, plot: str = "losses.png") -> Path:
+        """Close the tracker, draw the curves and record the final checkpoint and the plot as the
+        stage's outputs. -> the plot."""
+        self.tracker.close()
+        record_checkpoint(stage, final)
+        figure = plot_history(self.history, self.work / plot, title)
+        stage.add_output(figure, kind="plot")
+        return figure
+
+
+def record_checkpoint(stage, folder: Path) -> None:
+    """Every file of a checkpoint folder as a `checkpoint` output of the stage's manifest record."""
+    for f in sorted(Path(folder).iterdir()):
+        stage.add_output(f, kind="checkpoint")
+
+
+def _phase_at(phases: list[Phase], step: int) -> tuple[Phase, int]:
+    """The phase global `step` falls in, and the global step it starts at."""
+    start = 0
+    for phase in phases:
+        if step < start + phase.steps:
+            return phase, start
+        start += phase.steps
+    raise IndexError(f"step {step} is past the last phase")
