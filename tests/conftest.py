@@ -95,3 +95,16 @@ def pytest_terminal_summary(terminalreporter, config):
         name, _, param = r.nodeid.split("::", 1)[1].partition("[")
         case = name.removeprefix("test_").replace("_", " ") + (f" [{param}" if param else "")
         terminalreporter.write_line(f"| {case} | {r.outcome} | {r.duration:.1f} |")
+
+
+@pytest.fixture
+def contract():
+    """A task contract with the tiny task's shapes; keyword arguments change fields:
+    `contract(image_size=16, chunk=4)`."""
+    from worldenv_core.contract import TaskContract
+
+    def make(**fields) -> TaskContract:
+        base = dict(name="tiny", suite="libero_object", task_ids=(0,), cameras=("agentview",), image_size=64, chunk=8,
+                    action_dim=7, proprio_dim=7, max_steps=280, control_freq=20.0)
+        return TaskContract(**{**base, **fields})
+    return make

@@ -8,7 +8,7 @@ import pytest
 from stages.train_worldsim.run import run as train_worldsim
 from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.manifest import Manifest
-from worldenv_core.models.checkpoint import load_model
+from worldenv_core.models.checkpoint import load_checkpoint
 from worldenv_core.stage import ConfigError, compose_config
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
@@ -26,7 +26,7 @@ def test_train_worldsim_without_policy_rollouts_names_the_missing_step(demo_expe
         train_worldsim(cfg(demo_experiment))
 
 
-def test_train_worldsim_records_checkpoint_fidelity_and_resumes(demo_experiment):
+def test_train_worldsim_records_checkpoint_fidelity_and_resumes(demo_experiment, contract):
     exp = demo_experiment
     metrics = train_worldsim(cfg(exp, "expert_only=true"))
     m = Manifest(exp)
@@ -49,8 +49,8 @@ def test_train_worldsim_records_checkpoint_fidelity_and_resumes(demo_experiment)
     for key in ("model_psnr", "copy_psnr", "model_ssim", "copy_ssim", "plain_psnr", "plain_ssim"):  # detail transfer on
         assert 0 < report["fidelity"]["8"][key] < 100
     assert report["kinematics_1step"]["pos_mm_median"] < 5  # fitted on one episode, checked on the other
-    model, config = load_model(files["model.safetensors"], expect={"image_size": 64, "chunk": 8, "kind": "worldsim"})
-    assert model.sampling_steps == 2 and model.detail_gate == 0.3 and set(config["meta"]["cameras"]) == {"0"}
+    model, meta = load_checkpoint(files["model.safetensors"].parent, "worldsim", contract())
+    assert model.sampling_steps == 2 and model.detail_gate == 0.3 and set(meta["cameras"]) == {"0"}
     assert metrics["held_out"] == 1 and metrics["episodes"] == 1
 
     again = train_worldsim(cfg(exp, "expert_only=true"))  # same config: resumes at the end, trains nothing

@@ -11,8 +11,7 @@ from stages.train_reflector.run import run as train_reflector
 from stages.train_worldsim.run import run as train_worldsim
 from worldenv_core.data.mcap_io import read_episode, read_reflector_scores
 from worldenv_core.manifest import Manifest
-from worldenv_core.models.policy import load_policy
-from worldenv_core.models.reflector import load_reflector
+from worldenv_core.models.checkpoint import load_checkpoint
 from worldenv_core.stage import ConfigError, compose_config
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
@@ -41,7 +40,7 @@ def trained(demo_experiment):
     return exp, post_train_loop(cfg("post_train_loop", exp, *LOOP))
 
 
-def test_loop_records_a_post_trained_policy_with_its_real_success_curve(trained):
+def test_loop_records_a_post_trained_policy_with_its_real_success_curve(trained, contract):
     exp, metrics = trained
     m = Manifest(exp)
     rec = m.latest("post_train_loop", task="tiny", eta=0.5, n_rollouts=2)  # rl.eta null: the reflector's own 0.5
@@ -49,7 +48,7 @@ def test_loop_records_a_post_trained_policy_with_its_real_success_curve(trained)
     assert {"train_policy", "train_worldsim", "train_reflector", "collect"} <= used
     files = {p.name: p for p in m.resolve(rec)}
     assert {"model.safetensors", "config.json", "training.png"} <= set(files)
-    policy, meta = load_policy(files["model.safetensors"].parent, expect={"chunk": 8, "image_size": 64})
+    policy, meta = load_checkpoint(files["model.safetensors"].parent, "policy", contract())
     assert meta["iteration"] == 2 and meta["post_trained_from"]
     assert set(metrics["real_success"]) == {"0", "2"}  # iteration 0 is the SFT policy
     assert all(0.0 <= v <= 1.0 for v in metrics["real_success"].values())
@@ -93,7 +92,7 @@ def test_multirun_sweep_over_eta_on_the_basic_launcher(trained):
     overrides = [o for o in LOOP if not o.startswith(("rl.iterations", "eval.every"))]
     cmd = [sys.executable, "-m", "stages.post_train_loop", "-m", "+task=tiny", "scale=tiny", f"experiment_dir={exp}",
            *overrides, "rl.iterations=1", "eval.every=0", "rl.eta=0.3,0.7"]
-    done = subprocess.run(cmd, cwd=Path(__file__).resolve().parents[2], capture_output=True, text=True, timeout=600)
+    done = subprocess.run(cmd, cwd=Path(__file__).resolve().parents[3], capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
     m = Manifest(exp)
     assert {r.tags["eta"] for r in m.find("post_train_loop", task="tiny", n_rollouts=2)} >= {0.3, 0.7}
@@ -132,7 +131,7 @@ def test_reflector_also_trains_on_the_world_simulators_replays_of_its_episodes(t
     train_reflector(cfg("train_reflector", exp, *REFLECTOR, "train.with_imagined=true"))
     both = Manifest(exp).latest("train_reflector", task="tiny")
     assert both.id != real_only.id and m.latest("train_worldsim", task="tiny").id in both.inputs
-    metas = [load_reflector(next(p.parent for p in m.resolve(r) if p.name == "model.safetensors"))[1]
+    metas = [load_checkpoint(next(p.parent for p in m.resolve(r) if p.name == "model.safetensors"), "reflector")[1]
              for r in (real_only, both)]
     assert metas[1]["imagined_episodes"] == metas[0]["episodes"] == metas[1]["episodes"] // 2
     assert metas[1]["positive_frames"] == 2 * metas[0]["positive_frames"]  # the imagined copies keep the labels

@@ -6,10 +6,9 @@ import pytest
 
 from stages.evaluate.run import run as evaluate
 from stages.train_reflector.run import run as train_reflector
-from stages.train_reflector.run import ETA_SWEEP, cross_validate_eta, cross_validation_folds
 from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.manifest import ArtefactError, Manifest
-from worldenv_core.models.reflector import load_reflector
+from worldenv_core.models.checkpoint import load_checkpoint
 from worldenv_core.rl.termination import first_success
 from worldenv_core.stage import ConfigError, compose_config
 
@@ -36,7 +35,7 @@ def test_demos_go_on_after_success_for_the_reflector(demo_experiment):
         assert first_success(ep.success) == ep.length - 8 and ep.success[-9:].all()
 
 
-def test_train_reflector_records_checkpoint_and_report(trained):
+def test_train_reflector_records_checkpoint_and_report(trained, contract):
     exp, metrics = trained
     m = Manifest(exp)
     rec = m.latest("train_reflector", task="tiny", data="expert")
@@ -49,7 +48,7 @@ def test_train_reflector_records_checkpoint_and_report(trained):
     assert real["per_step"]["n"] > 0 and 0 <= real["per_step"]["accuracy"] <= 1
     assert real["termination"]["all"]["episodes"] == 1 == metrics["held_out"]
     assert "imagined" not in report  # this experiment has no world simulator
-    model, meta = load_reflector(files["model.safetensors"].parent, expect={"image_size": 64})
+    model, meta = load_checkpoint(files["model.safetensors"].parent, "reflector", contract())
     # the training demo's 9 frames from success on, less the first 8: settled labels (train.label_delay=8)
     assert meta["held_out"] and meta["label_delay"] == 8 and meta["positive_frames"] == 9 - 8
 
@@ -123,31 +122,3 @@ def test_evaluate_all_equals_three_separate_runs(with_policy):
         (b,) = json.loads((Path(together[mode]["report_dir"]) / "episodes.json").read_text())
         assert {k: a[k] for k in keys} == {k: b[k] for k in keys}, mode
     assert together["fixed"]["per_task"][0]["mean_steps"] == 280
-
-
-def test_cross_validation_folds_partition_the_training_episodes_in_sorted_order():
-    paths = [Path(f"c/task00/e{i}.mcap") for i in (3, 0, 5, 1, 4, 2)]
-    folds = cross_validation_folds(paths, 3)
-    assert [[paths[i].stem for i in f] for f in folds] == [["e0", "e3"], ["e1", "e4"], ["e2", "e5"]]
-    assert sorted(i for f in folds for i in f) == list(range(6))
-    with pytest.raises(ConfigError, match="eta_folds=7 needs 2 <= folds <= the 6 training episodes"):
-        cross_validation_folds(paths, 7)
-
-
-def test_eta_cross_validation_scores_every_training_episode_out_of_fold_and_resumes(tmp_path, synthetic_episodes):
-    """Two fold reflectors on synthetic episodes: each episode is scored once, by the model that
-    did not train on it; a rerun finds the finished folds and trains nothing."""
-    from worldenv_core.models.checkpoint import read_config
-    from worldenv_core.models.text import InstructionEncoder
-
-    eps = synthetic_episodes(0, 8)
-    paths = [Path(f"c/task00/e{i}.mcap") for i in range(8)]
-    c = compose_config("train_reflector", ["+task=tiny", "scale=tiny", "eta_folds=2", "frame_stride=4",
-                                           *[o for o in SMALL if not o.startswith(("holdout", "plots", "eta_folds"))]])
-    out = cross_validate_eta(c, paths, eps, tmp_path, "cpu", InstructionEncoder())
-    assert out["folds"] == 2 and out["episodes"] == 8 and out["chosen_eta"] in ETA_SWEEP
-    assert all(m["episodes"] == 8 for m in out["eta_sweep"].values())  # every training episode once, out of fold
-    for k, fold in enumerate(cross_validation_folds(paths, 2)):
-        meta = read_config(tmp_path / "folds" / f"{k + 1}-of-2" / "checkpoints" / "last")["meta"]
-        assert meta["held_out"] == [f"c/task00/e{i}.mcap" for i in fold] and meta["episodes"] == 4
-    assert cross_validate_eta(c, paths, eps, tmp_path, "cpu", InstructionEncoder()) == out  # resumed: same choice

@@ -4,7 +4,8 @@ import pytest
 import torch
 
 from worldenv_core.models.checkpoint import save_model
-from worldenv_core.models.reflector import ReflectorStop, load_reflector, prefix_scores
+from worldenv_core.models.checkpoint import load_checkpoint
+from worldenv_core.rl.termination import ReflectorStop
 
 
 def tiny_llava(folder):
@@ -47,20 +48,20 @@ def test_p_yes_is_a_probability_per_prefix_and_batched_equals_single(vlm_config)
     model = instantiate(vlm_config)
     video = torch.randint(0, 255, (9, 3, 24, 24), dtype=torch.uint8)
     steps = [0, 4, 8]
-    scores = prefix_scores(model, video, "put bowl on plate", steps, encoder=None)
+    scores = model.score_prefixes(video, "put bowl on plate", steps)
     assert scores.shape == (3,) and ((scores > 0) & (scores < 1)).all()
     single = model.probability([video[torch.tensor(steps)]], ["put bowl on plate"])
     assert torch.allclose(scores[-1:], single, atol=1e-5)  # padding in a batch changes nothing
     assert not any(p.requires_grad for p in model.vlm.parameters())
 
 
-def test_checkpoint_is_the_config_naming_the_vlm_and_the_stop_rule_uses_it(vlm_config, tmp_path):
+def test_checkpoint_is_the_config_naming_the_vlm_and_the_stop_rule_uses_it(vlm_config, tmp_path, contract):
     from hydra.utils import instantiate
 
     model = instantiate(vlm_config)
     save_model(tmp_path / "r", model, vlm_config, {"kind": "reflector", "image_size": 24, "camera": "agentview"})
     assert (tmp_path / "r" / "model.safetensors").stat().st_size < 1024  # no copy of the VLM's weights
-    loaded, _ = load_reflector(tmp_path / "r", expect={"image_size": 24})
+    loaded, _ = load_checkpoint(tmp_path / "r", "reflector", contract(image_size=24))
     stop = ReflectorStop(loaded, 0.0, "put bowl on plate", encoder=None)
     frame = {"agentview": torch.randint(0, 255, (24, 24, 3), dtype=torch.uint8).numpy()}
     assert stop(frame) is True and 0 < stop.scores[0] < 1

@@ -3,10 +3,10 @@ frame decoded, and each rollout becomes an imagined episode with the reflector's
 its own termination, written so `read_episode` reads it back."""
 
 import numpy as np
+import pytest
 import torch
 from hydra.utils import instantiate
 
-from test_imagined_env import contexts, make_env  # the tiny imagined env of those tests
 from worldenv_core.data.mcap_io import read_episode, read_reflector_scores
 from worldenv_core.imagination.recording import record_imagined_rollouts, write_imagined_rollouts
 from worldenv_core.rl.loop import collect_rollouts
@@ -20,16 +20,20 @@ def tiny_policy():
                                      "cameras": ["agentview"], "cond_dim": 16, "widths": [8, 8], "keypoints": 4}})
 
 
-def record(eta, horizon=12):
-    env = make_env(eta, horizon)
-    encoder = lambda texts: torch.stack([torch.full((16,), float(len(t))) for t in texts])  # noqa: E731
-    rollouts = record_imagined_rollouts(tiny_policy(), env, contexts()[:2], 2, encoder, "libero_goal",
-                                        {0: "task zero", 3: "task three"}, "agentview", extra={"policy": "p"},
-                                        generator=torch.Generator().manual_seed(0))
-    return env, encoder, rollouts
+@pytest.fixture
+def record(make_env, contexts):
+    """Two rollouts from each of two contexts at `eta`, recorded."""
+    def run(eta, horizon=12):
+        env = make_env(eta, horizon)
+        encoder = lambda texts: torch.stack([torch.full((16,), float(len(t))) for t in texts])  # noqa: E731
+        rollouts = record_imagined_rollouts(tiny_policy(), env, contexts()[:2], 2, encoder, "libero_goal",
+                                            {0: "task zero", 3: "task three"}, "agentview", extra={"policy": "p"},
+                                            generator=torch.Generator().manual_seed(0))
+        return env, encoder, rollouts
+    return run
 
 
-def test_rollouts_to_the_horizon_keep_every_frame_and_the_scores_at_chunk_boundaries():
+def test_rollouts_to_the_horizon_keep_every_frame_and_the_scores_at_chunk_boundaries(contexts, record):
     env, _, rollouts = record(eta=1.0)
     assert env.decode == "last"  # restored for training
     assert len(rollouts) == 4 and [r.episode.meta.task_id for r in rollouts] == [0, 0, 3, 3]
@@ -44,7 +48,7 @@ def test_rollouts_to_the_horizon_keep_every_frame_and_the_scores_at_chunk_bounda
     assert np.array_equal(rollouts[2].episode.images["agentview"][0], contexts()[1].frame.permute(1, 2, 0).numpy())
 
 
-def test_a_reflector_stop_ends_the_episode_there_as_an_imagined_success(tmp_path):
+def test_a_reflector_stop_ends_the_episode_there_as_an_imagined_success(tmp_path, record):
     _, _, rollouts = record(eta=0.0)  # R > 0 at the first chunk boundary: every rollout stops at t = 4
     for r in rollouts:
         assert r.by_reflector and r.episode.length == 4 and r.episode.meta.success
@@ -56,7 +60,7 @@ def test_a_reflector_stop_ends_the_episode_there_as_an_imagined_success(tmp_path
     assert read_reflector_scores(paths[1]) == rollouts[1].scores
 
 
-def test_recording_samples_the_actions_training_would_with_the_same_noise():
+def test_recording_samples_the_actions_training_would_with_the_same_noise(contexts, record):
     env, encoder, rollouts = record(eta=1.0)
     batch = collect_rollouts(tiny_policy(), env, contexts()[:2], 2, encoder, generator=torch.Generator().manual_seed(0))
     recorded = torch.stack([torch.from_numpy(r.episode.actions) for r in rollouts])

@@ -10,7 +10,7 @@ import pytest
 from worldenv_core.cli import EXIT_USER_ERROR, user_errors
 from worldenv_core.stage import ConfigError
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 
 
 def stage(*args: str, tmp_path: Path) -> subprocess.CompletedProcess:

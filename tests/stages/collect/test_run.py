@@ -18,7 +18,7 @@ from worldenv_core.envs.tasks import UnknownTaskError
 from worldenv_core.manifest import Manifest
 from worldenv_core.stage import CONF_DIR, ConfigError
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 
 
 def make_cfg(tmp_path, *overrides):

@@ -8,7 +8,8 @@ from worldenv_core.imagination.simulator import ImaginedSimulator
 from worldenv_core.envs.recording import expert_attempt, to_episode
 from worldenv_core.kinematics import NextStateModel, PinholeCamera, draw_action_maps
 from worldenv_core.metrics import psnr, ssim
-from worldenv_core.models.checkpoint import CheckpointError, load_model, save_model
+from worldenv_core.contract import ContractError
+from worldenv_core.models.checkpoint import load_checkpoint, save_model
 from worldenv_core.models.worldsim import Autoencoder, WorldSimulator
 from worldenv_core.models.worldsim_data import LatentChunks, encode_episode_frames
 
@@ -45,7 +46,7 @@ def real_episode(tiny_env):
 
 @pytest.mark.sim
 @pytest.mark.timeout(300)
-def test_tiny_world_model_overfits_real_frames_and_samples_with_1_and_4_steps(real_episode, tmp_path):
+def test_tiny_world_model_overfits_real_frames_and_samples_with_1_and_4_steps(real_episode, tmp_path, contract):
     ep, cam = real_episode
     torch.manual_seed(0)
     model = WorldSimulator(**TINY)
@@ -96,13 +97,13 @@ def test_tiny_world_model_overfits_real_frames_and_samples_with_1_and_4_steps(re
         sim.step(torch.zeros(2, 3, 7))
 
     # the checkpoint is self-describing and refuses another task contract
-    path = save_model(tmp_path / "ws", model, TINY_CFG, {"image_size": 64, "chunk": 4})
-    loaded, _ = load_model(path, expect={"image_size": 64, "chunk": 4})
+    path = save_model(tmp_path / "ws", model, TINY_CFG, {"kind": "worldsim", "image_size": 64, "chunk": 4})
+    loaded, _ = load_checkpoint(path, "worldsim", contract(image_size=64, chunk=4))
     torch.testing.assert_close(loaded.encode(frames[:2]), model.encode(frames[:2]))
-    with pytest.raises(CheckpointError, match="image_size=64.*image_size=128"):
-        load_model(path, expect={"image_size": 128})
-    with pytest.raises(CheckpointError, match="chunk=4.*chunk=8"):
-        load_model(path, expect={"image_size": 64, "chunk": 8})
+    with pytest.raises(ContractError, match="image_size=64.*image_size=128"):
+        load_checkpoint(path, "worldsim", contract(image_size=128, chunk=4))
+    with pytest.raises(ContractError, match="chunk=4.*chunk=8"):
+        load_checkpoint(path, "worldsim", contract(image_size=64, chunk=8))
 
 
 def test_imagined_simulator_refuses_a_camera_of_another_resolution():

@@ -8,7 +8,8 @@ from stages.evaluate.run import run as evaluate
 from stages.train_policy.run import run as train_policy
 from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.manifest import ArtefactError, Manifest
-from worldenv_core.report import success_table
+from stages.evaluate.evaluation import success_table
+from worldenv_core.report import ReportContext
 from worldenv_core.stage import ConfigError, compose_config
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
@@ -96,5 +97,5 @@ def test_evaluate_on_another_registered_suite_with_the_same_tasks(experiment):
     report = (exp / "report" / "report.md").read_text()
     assert "## Evaluated on other suites" in report and "| sft | libero_object_lan | fixed | 24 |" in report
     # the task's own table still shows its own suite's evaluation
-    _, cells = success_table(m, "tiny")
+    _, cells = success_table(ReportContext(m, "tiny", exp / "report"))
     assert own.id != rec.id and cells[("sft", "fixed")]["suite"] == "libero_object"

@@ -6,8 +6,10 @@ import torch
 from hydra.utils import instantiate
 
 from worldenv_core.models.checkpoint import CheckpointError, save_model
-from worldenv_core.models.reflector import (IncrementalScorer, ReflectorStop, check_eta, load_reflector,
-                                            reflector_eta, score_prefixes, subsample_indices)
+from worldenv_core.contract import ContractError
+from worldenv_core.models.checkpoint import load_checkpoint
+from worldenv_core.models.reflector import IncrementalScorer, score_prefixes, subsample_indices
+from worldenv_core.rl.termination import ReflectorStop, check_eta, reflector_eta
 from worldenv_core.models.reflector_data import PrefixSampler, prefix_frames, settled_labels
 
 
@@ -90,19 +92,19 @@ def test_eta_outside_the_unit_interval_is_rejected(eta):
         check_eta(eta)
 
 
-def test_checkpoint_round_trip_and_contract_errors(tmp_path):
+def test_checkpoint_round_trip_and_contract_errors(tmp_path, contract):
     model = instantiate(small_config()).eval()
     cfg = small_config()
     save_model(tmp_path / "r", model, cfg, {"kind": "reflector", "image_size": 16, "camera": "agentview"})
-    loaded, meta = load_reflector(tmp_path / "r", expect={"image_size": 16})
+    loaded, meta = load_checkpoint(tmp_path / "r", "reflector", contract(image_size=16))
     video, lang = torch.randint(0, 255, (5, 3, 16, 16), dtype=torch.uint8), torch.randn(16)
     assert torch.allclose(loaded.score_video(video, lang), model.score_video(video, lang))
     assert meta["camera"] == "agentview"
-    with pytest.raises(CheckpointError, match="image_size=16.*needs image_size=128"):
-        load_reflector(tmp_path / "r", expect={"image_size": 128})
+    with pytest.raises(ContractError, match="image_size=16.*has image_size=128"):
+        load_checkpoint(tmp_path / "r", "reflector", contract(image_size=128))
     save_model(tmp_path / "p", model, cfg, {"kind": "policy"})
     with pytest.raises(CheckpointError, match="'policy' checkpoint, not a reflector"):
-        load_reflector(tmp_path / "p")
+        load_checkpoint(tmp_path / "p", "reflector")
 
 
 def test_a_stage_stops_at_the_reflectors_own_eta_unless_told_otherwise(tmp_path):

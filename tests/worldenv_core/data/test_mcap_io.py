@@ -198,7 +198,7 @@ def test_list_episode_files(tmp_path, episode_dir):
 
 # ------------------------------------------------------------------ imagined rollouts
 
-LAYOUT = __import__("pathlib").Path(__file__).resolve().parents[2] / "foxglove" / "imagined_vs_real.json"
+LAYOUT = __import__("pathlib").Path(__file__).resolve().parents[3] / "foxglove" / "imagined_vs_real.json"
 
 
 def _layout_topics() -> set[str]:

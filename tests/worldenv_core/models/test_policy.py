@@ -5,7 +5,9 @@ import torch
 from hydra.utils import instantiate
 
 from worldenv_core.models.checkpoint import CheckpointError, load_model, save_model
-from worldenv_core.models.policy import LaplacePolicy, PolicyRunner, load_policy
+from worldenv_core.contract import ContractError
+from worldenv_core.models.checkpoint import load_checkpoint
+from worldenv_core.models.policy import LaplacePolicy, PolicyRunner
 
 CAMS = ["agentview"]
 
@@ -58,12 +60,12 @@ def test_a_tiny_policy_overfits_a_handful_of_real_frames(tiny_env):
     assert loss.item() < 0.05, f"could not overfit 6 real frames: L1 {loss.item():.3f}"
 
 
-def test_checkpoint_round_trip_needs_only_the_folder(tmp_path):
+def test_checkpoint_round_trip_needs_only_the_folder(tmp_path, contract):
     model = instantiate(small_config())
     model.action_norm.set_stats(np.arange(7), np.full(7, 2.0))
     save_model(tmp_path / "ckpt", model, small_config(), {"kind": "policy", "chunk": 4, "action_dim": 7,
                                                            "cameras": CAMS, "image_size": 32})
-    loaded, meta = load_policy(tmp_path / "ckpt", expect={"chunk": 4, "action_dim": 7})
+    loaded, meta = load_checkpoint(tmp_path / "ckpt", "policy", contract(chunk=4, image_size=32, cameras=tuple(CAMS)))
     inputs = fake_inputs()
     model.eval()
     for a, b in zip(model(*inputs), loaded(*inputs)):
@@ -72,16 +74,19 @@ def test_checkpoint_round_trip_needs_only_the_folder(tmp_path):
     assert not (tmp_path / "ckpt.tmp").exists()
 
 
-def test_bad_checkpoints_give_clear_errors(tmp_path):
+def test_bad_checkpoints_give_clear_errors(tmp_path, contract):
     with pytest.raises(CheckpointError, match="not a checkpoint folder"):
-        load_policy(tmp_path / "missing")
+        load_checkpoint(tmp_path / "missing", "policy")
     model = instantiate(small_config(action_dim=6))
     save_model(tmp_path / "ckpt6", model, small_config(action_dim=6), {"kind": "policy", "action_dim": 6})
-    with pytest.raises(CheckpointError, match="action_dim=6.*needs action_dim=7"):
-        load_policy(tmp_path / "ckpt6", expect={"action_dim": 7})
+    with pytest.raises(ContractError, match="action_dim=6.*has action_dim=7"):
+        load_checkpoint(tmp_path / "ckpt6", "policy", contract())
+    save_model(tmp_path / "cams", model, small_config(action_dim=6), {"kind": "policy", "cameras": ["wrist"]})
+    with pytest.raises(ContractError, match=r"cameras \['wrist'\].*\['agentview'\]"):
+        load_checkpoint(tmp_path / "cams", "policy", contract())
     save_model(tmp_path / "wm", model, small_config(action_dim=6), {"kind": "worldsim"})
     with pytest.raises(CheckpointError, match="not a policy"):
-        load_policy(tmp_path / "wm")
+        load_checkpoint(tmp_path / "wm", "policy")
 
 
 def test_runner_samples_around_mu_and_is_seeded():

@@ -1,0 +1,104 @@
+"""The experiment report is the sum of the stages' sections: each section renders from manifest
+records alone (tags, metrics and the reports a run wrote), and `write_report` assembles them in
+pipeline order. Records here are written by hand, as the stages write them."""
+import json
+
+from stages.collect import evaluation as collect
+from stages.evaluate import evaluation as evaluate
+from stages.post_train_loop import evaluation as post_train_loop
+from stages.report import SECTIONS, write_report
+from stages.train_reflector import evaluation as train_reflector
+from stages.train_worldsim import evaluation as train_worldsim
+from worldenv_core.manifest import Manifest, StageRun
+from worldenv_core.report import ReportContext, markdown_table
+
+TAGS = {"task": "tiny", "scale": "tiny"}
+
+
+def _write(path, data) -> str:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data) if not isinstance(data, str) else data)
+    return path
+
+
+def _experiment(root):
+    """One record per stage, each with the files its section reads."""
+    m = Manifest(root)
+    with StageRun(m, "collect", {**TAGS, "source": "policy"}, {}) as s:
+        for i in range(3):
+            s.add_output(_write(root / "data" / f"ep{i}.mcap", f"episode {i}"), kind="episodes")
+        s.metrics["collection"] = {"kept_frames": 120, "success_rate": 1 / 3}
+    collected = m.latest("collect")
+    with StageRun(m, "train_worldsim", {**TAGS, "data": "expert+policy"}, {}) as s:
+        s.use(collected, kind="episodes")
+        v = {"model_psnr": 25.0, "copy_psnr": 22.0, "model_ssim": 0.8, "copy_ssim": 0.7, "plain_ssim": 0.75}
+        s.add_output(_write(root / "ws" / "fidelity.json", {"fidelity": {"8": v}}), kind="report")
+    with StageRun(m, "train_reflector", {**TAGS, "data": "expert+policy", "hard_negatives": "mined"}, {}) as s:
+        s.record.tags["reward"] = "VLM yes/no"
+        s.metrics["training"] = "10 steps, label delay 0, mining every 5 > 0.3"
+        per_step = {"accuracy": 0.9, "f1": 0.8, "auroc": 0.95}
+        s.add_output(_write(root / "rf" / "reflector_eval.json", {
+            "eta": 0.5, "held_out_episodes": 4,
+            "real": {"per_step": per_step, "termination": {"all": {"f1": 0.75}}}}), kind="report")
+    with StageRun(m, "post_train_loop", {**TAGS, "eta": 0.5, "n_rollouts": 4}, {}) as s:
+        for stage in ("train_worldsim", "train_reflector"):
+            s.inputs.append(m.latest(stage).id)
+        history = [{"step": 0, "real_success": 0.2}, {"step": 1, "mean_reward": 0.3}, {"step": 2, "mean_reward": 0.5,
+                                                                                       "real_success": 0.4}]
+        _write(root / "loop" / "training.json", history)
+        s.add_output(_write(root / "loop" / "training.png", "png"), kind="plot")
+        s.metrics.update(iterations=2, real_success={"0": 0.2, "2": 0.4}, imagined_reward={"0": 0.1, "2": 0.3},
+                         imagined_success={"0": 0.0, "2": 0.5})
+    loop = m.latest("post_train_loop")
+    for policy, success in (("sft", [True, False]), ("post_trained", [True, True])):
+        with StageRun(m, "evaluate", {**TAGS, "termination": "oracle", "policy": policy}, {}) as s:
+            if policy == "post_trained":
+                s.inputs.append(loop.id)
+            rows = [{"task_id": 0, "init_state": i, "success": ok} for i, ok in enumerate(success)]
+            summary = {"policy": f"/x/{policy}/run/policy", "termination": "oracle", "init_states": 2,
+                       "success_rate": sum(success) / 2, "suite": "libero_object",
+                       "per_task": [{"task_id": 0, "task": "pick", "success_rate": sum(success) / 2}]}
+            s.add_output(_write(root / "ev" / policy / "results.json", summary), kind="report")
+            s.add_output(_write(root / "ev" / policy / "episodes.json", rows), kind="report")
+    return m
+
+
+def test_each_stage_renders_its_own_section(tmp_path):
+    ctx = ReportContext(_experiment(tmp_path), "tiny", tmp_path / "report")
+    ctx.out.mkdir()
+    text = "\n".join(evaluate.section(ctx))
+    assert "## Success in the real simulator" in text and "| **all** | **50.0 %** | **100.0 %** |" in text
+    assert "exact McNemar p = 1.000" in text and (ctx.out / "success.png").exists()
+    assert "## Ablations" in text and "VLM yes/no, eta 0.5" in text  # the reward kind is the reflector's tag
+    text = "\n".join(post_train_loop.section(ctx))
+    assert "| 0.5 | 4 | 2 | expert+policy | expert+policy |" in text and "0: 20 %, 2: 40 %" in text
+    assert (ctx.out / "post_training.png").exists()
+    text = "\n".join(train_worldsim.section(ctx))
+    assert "| expert+policy | 8 | 25.00 | 22.00 | 0.800 | 0.700 | 0.750 |" in text
+    text = "\n".join(train_reflector.section(ctx))
+    assert "VLM yes/no | 10 steps, label delay 0, mining every 5 > 0.3 | 0.5 | 4 | real | 0.900" in text
+    text = "\n".join(collect.section(ctx))
+    assert "| policy | tiny | 3 | 120 | 33 % |" in text
+
+
+def test_the_report_is_the_sections_in_order_then_wall_time(tmp_path):
+    m = _experiment(tmp_path)
+    text = write_report(tmp_path, "tiny").read_text()
+    headings = [line for line in text.splitlines() if line.startswith("## ")]
+    assert headings == ["## Success in the real simulator", "## Ablations (the paper's Table 2, as far as run)",
+                        "## Post-training (LOOP in imagination)", "## World simulator (open loop on held-out episodes)",
+                        "## Reflector (held-out episodes, newest first)", "## Data (newest collection of each source)",
+                        "## Wall time per stage"]
+    ctx = ReportContext(m, "tiny", tmp_path / "report")
+    for section in SECTIONS:  # every section's lines appear as it renders them
+        assert "\n".join(section(ctx)) in text
+
+
+def test_sections_are_empty_on_an_experiment_without_their_stage(tmp_path):
+    ctx = ReportContext(Manifest(tmp_path), "tiny", tmp_path)
+    assert [s(ctx) for s in SECTIONS[1:]] == [[], [], [], []]
+    assert "No evaluation yet" in "\n".join(evaluate.section(ctx))
+
+
+def test_markdown_table():
+    assert markdown_table(["a", "b"], [[1, "x"]]) == ["| a | b |", "|---|---|", "| 1 | x |"]
