@@ -360,7 +360,7 @@ def test_two_collections_at_once_one_runs_the_other_is_refused_naming_it(tmp_pat
 
 @pytest.mark.parametrize("override, needle", [
     ("rl.n_rollouts=0", "rl.n_rollouts must be at least 2"),
-    ("rl.eta=2", "rl.eta (the reflector's success threshold) must be in [0, 1]"),
+    ("eta=2", "eta (the reflector's success threshold) must be in [0, 1]"),
     ("rl.epsilon=0", "rl.epsilon (the PPO clip) must be > 0"),
     ("policy_from=./no/such/folder", "no checkpoint folder at ./no/such/folder"),
 ], ids=["n_rollouts=0", "eta=2", "epsilon=0", "policy_from=missing path"])

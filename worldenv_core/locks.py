@@ -15,7 +15,7 @@ import os
 import platform
 from pathlib import Path
 
-from worldenv_core.manifest import ArtefactError
+from worldenv_core.errors import ArtefactError
 
 log = logging.getLogger(__name__)
 LOCK_NAME = ".lock"

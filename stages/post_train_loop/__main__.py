@@ -1,4 +1,4 @@
-"""python -m stages.post_train_loop +task=<suite> [rl.eta=0.5] [rl.n_rollouts=8]"""
+"""python -m stages.post_train_loop +task=<suite> [eta=0.5] [rl.n_rollouts=8]"""
 import hydra
 from omegaconf import DictConfig
 

@@ -54,10 +54,10 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"rl.n_rollouts must be at least 2 (the RLOO baseline averages the other N - 1), "
                           f"got {cfg.rl.n_rollouts}")
     try:
-        if cfg.rl.eta is not None:  # null: the reflector's own
-            check_eta(cfg.rl.eta)
+        if cfg.eta is not None:  # null: the reflector's own
+            check_eta(cfg.eta)
     except ValueError as e:
-        raise ConfigError(f"rl.{e}") from None
+        raise ConfigError(str(e)) from None
     if not cfg.rl.epsilon > 0:
         raise ConfigError(f"rl.epsilon (the PPO clip) must be > 0, got {cfg.rl.epsilon}")
     if not (cfg.rl.lr_backbone > 0 and cfg.rl.lr_heads > 0):
@@ -108,7 +108,7 @@ def run(cfg: DictConfig) -> dict:
     contract, rl = task_contract(cfg), cfg.rl
     device = pick_device(cfg.device)
     config = resolved(cfg)
-    tags = {"task": contract.name, "scale": cfg.scale.name, "eta": None if rl.eta is None else float(rl.eta),
+    tags = {"task": contract.name, "scale": cfg.scale.name, "eta": None if cfg.eta is None else float(cfg.eta),
             "n_rollouts": int(rl.n_rollouts)}
     with StageRun(manifest, "post_train_loop", tags, config) as stage:
         policy_path = resolve_policy(cfg, stage)
@@ -116,7 +116,7 @@ def run(cfg: DictConfig) -> dict:
         reflector_path = resolve_checkpoint(stage, cfg.reflector_from, "train_reflector", contract.name, cfg.scale.name)
         encoder = InstructionEncoder()
         encode = lambda s: encoder(s).to(device)  # noqa: E731
-        eta = reflector_eta(reflector_path, rl.eta)
+        eta = reflector_eta(reflector_path, cfg.eta)
         stage.record.tags["eta"] = eta  # the threshold used, also when it is the reflector's own
         env, camera = build_env(cfg, contract, worldsim_path, reflector_path, eta, encode, device)
         policy, pmeta = load_checkpoint(policy_path, "policy", contract, device=str(device))

@@ -15,5 +15,5 @@ def test_work_dir_depends_on_settings_and_inputs_not_their_order():
 def test_scale_settings_that_only_choose_evaluation_do_not_name_work():
     scale = {"name": "small", "reflector_steps": 1500}
     a = work_dir("exp", "train_reflector", {"scale": scale}, [])
-    assert a == work_dir("exp", "train_reflector", {"scale": {**scale, "reflector_eta_folds": 5}}, [])
+    assert a == work_dir("exp", "train_reflector", {"scale": {**scale, "eta_folds": 5}}, [])
     assert a != work_dir("exp", "train_reflector", {"scale": {**scale, "reflector_steps": 3000}}, [])

@@ -43,7 +43,7 @@ def trained(demo_experiment):
 def test_loop_records_a_post_trained_policy_with_its_real_success_curve(trained, contract):
     exp, metrics = trained
     m = Manifest(exp)
-    rec = m.latest("post_train_loop", task="tiny", eta=0.5, n_rollouts=2)  # rl.eta null: the reflector's own 0.5
+    rec = m.latest("post_train_loop", task="tiny", eta=0.5, n_rollouts=2)  # eta null: the reflector's own 0.5
     used = {m.get(i).stage for i in rec.inputs}
     assert {"train_policy", "train_worldsim", "train_reflector", "collect"} <= used
     files = {p.name: p for p in m.resolve(rec)}
@@ -77,21 +77,21 @@ def test_loop_resumes_and_rejects_bad_settings(trained):
     assert shown_otherwise["train_wall_s"] < 5  # evaluation settings do not define the run: same work dir
     with pytest.raises(ConfigError, match="imagined_rollouts must be at least 2"):
         post_train_loop(cfg("post_train_loop", exp, *LOOP, "eval.imagined_rollouts=1"))
-    for override, match in (("rl.n_rollouts=1", "at least 2"), ("rl.eta=1.5", r"eta .* must be in \[0, 1\]"),
+    for override, match in (("rl.n_rollouts=1", "at least 2"), ("eta=1.5", r"eta .* must be in \[0, 1\]"),
                             ("rl.epsilon=0", "epsilon .* must be > 0")):
         with pytest.raises(ConfigError, match=match):
             post_train_loop(cfg("post_train_loop", exp, *LOOP, override))
 
 
 def test_multirun_sweep_over_eta_on_the_basic_launcher(trained):
-    """`-m rl.eta=...` runs one post-training per value, each recorded with its own tags."""
+    """`-m eta=...` runs one post-training per value, each recorded with its own tags."""
     import subprocess
     import sys
 
     exp, _ = trained
     overrides = [o for o in LOOP if not o.startswith(("rl.iterations", "eval.every"))]
     cmd = [sys.executable, "-m", "stages.post_train_loop", "-m", "+task=tiny", "scale=tiny", f"experiment_dir={exp}",
-           *overrides, "rl.iterations=1", "eval.every=0", "rl.eta=0.3,0.7"]
+           *overrides, "rl.iterations=1", "eval.every=0", "eta=0.3,0.7"]
     done = subprocess.run(cmd, cwd=Path(__file__).resolve().parents[3], capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
     m = Manifest(exp)
