@@ -5,7 +5,9 @@ ablations as far as they were run (the paper's Table 2)."""
 
 from __future__ import annotations
 
+import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 
@@ -13,7 +15,8 @@ from stages.post_train_loop.evaluation import imagined_span
 from worldenv_core.manifest import StageRecord
 from worldenv_core.metrics import paired_success_test
 from worldenv_core.report import POLICIES, TERMINATIONS, ReportContext, markdown_table, newest, short_run, titled
-from worldenv_core.viz import figure, save_figure
+from worldenv_core.rl.termination import StopOutcome, termination_metrics
+from worldenv_core.viz import figure, montage_video, save_figure
 
 
 def summarise(rows: list[dict]) -> dict:
@@ -46,6 +49,34 @@ def markdown(summary: dict, suite: str) -> str:
                   f"({early} before a success that came later, {t['false_stops'] - early} in failures), "
                   f"{t['missed_successes']} successes never stopped; termination F1 {t['f1']:.3f}."]
     return "\n".join(lines) + "\n"
+
+
+def record_mode(stage, mode: str, rows: list[dict], videos: dict, setting: dict, reflector_path: str | None,
+                eta: float | None, out_dir: Path) -> dict:
+    """Write one termination mode's results, episodes and videos, and fill its manifest record.
+    `setting`: policy, init_states, suite and max_steps of the evaluation."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    summary = summarise(rows)
+    suite = setting["suite"]
+    summary.update(policy=setting["policy"], termination=mode, init_states=setting["init_states"],
+                   report_dir=str(out_dir), suite=suite, max_steps=setting["max_steps"])
+    if mode == "reflector":
+        summary.update(reflector=reflector_path, eta=eta, reflector_termination=termination_metrics(
+            [StopOutcome(r["first_success_step"], r["stop_step"]) for r in rows if r["error"] is None]))
+    (out_dir / "episodes.json").write_text(json.dumps(rows, indent=1))
+    (out_dir / "results.json").write_text(json.dumps(summary, indent=2))
+    (out_dir / "results.md").write_text(markdown(summary, suite))
+    for name in ("results.json", "results.md", "episodes.json"):
+        stage.add_output(out_dir / name, kind="report")
+    for (tid, i), frames in sorted(videos.items()):
+        r = next(r for r in rows if r["task_id"] == tid and r["init_state"] == i)
+        if mode != "fixed":  # the rollout ran to the horizon; show it up to where this mode stopped
+            frames = frames[:r["steps"] + 1]
+        path = montage_video([frames], out_dir / "videos" / f"task{tid:02d}_init{i:02d}_{'success' if r['success'] else 'failure'}.gif")
+        stage.add_output(path, kind="video")
+    stage.metrics.update({k: v for k, v in summary.items() if k != "per_task"})
+    print(markdown(summary, suite))
+    return summary
 
 
 def own_suite_evaluations(ctx: ReportContext, **tags) -> list[StageRecord]:

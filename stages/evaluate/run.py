@@ -3,7 +3,6 @@ from the benchmark's fixed init states, under a chosen termination mode."""
 
 from __future__ import annotations
 
-import json
 import logging
 from contextlib import ExitStack
 from datetime import datetime
@@ -12,7 +11,7 @@ from pathlib import Path
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from stages.evaluate.evaluation import markdown, summarise
+from stages.evaluate.evaluation import record_mode
 from stages.report import write_report
 from worldenv_core.envs.collection import PolicyEvalJob, evaluate_policy_task
 from worldenv_core.envs.tasks import check_suite, num_tasks, resolve_task_ids, suite_max_steps
@@ -20,10 +19,8 @@ from worldenv_core.manifest import StageRun
 from worldenv_core.models.checkpoint import read_config
 from worldenv_core.rl.termination import check_eta, reflector_eta
 from worldenv_core.parallel import run_jobs
-from worldenv_core.rl.termination import StopOutcome, termination_metrics
 from worldenv_core.stage import (POLICY_SOURCES, ConfigError, positive_int, require_task, resolve_checkpoint,
                                  resolve_policy, resolved, start, task_contract)
-from worldenv_core.viz import montage_video
 
 log = logging.getLogger("worldenv.evaluate")
 MODES = ("oracle", "fixed", "reflector")
@@ -115,35 +112,9 @@ def run(cfg: DictConfig) -> dict:
                 videos[(out["rows"][0]["task_id"], i)] = frames
         for mode, stage in stages.items():
             out_dir = run_dir / mode if cfg.termination == "all" else run_dir
-            summaries[mode] = record_mode(stage, cfg, mode, [r for r in rows if r["termination"] == mode],
-                                          videos, policy_path, reflector_path, eta, out_dir)
+            summaries[mode] = record_mode(stage, mode, [r for r in rows if r["termination"] == mode], videos,
+                                          {"policy": policy_path, "init_states": cfg.init_states, "suite": suite,
+                                           "max_steps": max_steps}, reflector_path, eta, out_dir)
     report = write_report(manifest.root, task.name)  # the experiment's report, now with this evaluation
     log.info("experiment report: %s", report)
     return summaries if cfg.termination == "all" else summaries[cfg.termination]
-
-
-def record_mode(stage: StageRun, cfg: DictConfig, mode: str, rows: list[dict], videos: dict, policy_path: str,
-                reflector_path: str | None, eta: float | None, out_dir: Path) -> dict:
-    """Write one termination mode's results, episodes and videos, and fill its manifest record."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    summary = summarise(rows)
-    suite, max_steps = target_suite(cfg)
-    summary.update(policy=policy_path, termination=mode, init_states=cfg.init_states, report_dir=str(out_dir),
-                   suite=suite, max_steps=max_steps)
-    if mode == "reflector":
-        summary.update(reflector=reflector_path, eta=eta, reflector_termination=termination_metrics(
-            [StopOutcome(r["first_success_step"], r["stop_step"]) for r in rows if r["error"] is None]))
-    (out_dir / "episodes.json").write_text(json.dumps(rows, indent=1))
-    (out_dir / "results.json").write_text(json.dumps(summary, indent=2))
-    (out_dir / "results.md").write_text(markdown(summary, suite))
-    for name in ("results.json", "results.md", "episodes.json"):
-        stage.add_output(out_dir / name, kind="report")
-    for (tid, i), frames in sorted(videos.items()):
-        r = next(r for r in rows if r["task_id"] == tid and r["init_state"] == i)
-        if mode != "fixed":  # the rollout ran to the horizon; show it up to where this mode stopped
-            frames = frames[:r["steps"] + 1]
-        path = montage_video([frames], out_dir / "videos" / f"task{tid:02d}_init{i:02d}_{'success' if r['success'] else 'failure'}.gif")
-        stage.add_output(path, kind="video")
-    stage.metrics.update({k: v for k, v in summary.items() if k != "per_task"})
-    print(markdown(summary, suite))
-    return summary

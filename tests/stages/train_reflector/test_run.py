@@ -7,6 +7,7 @@ import pytest
 from stages.evaluate.run import run as evaluate
 from stages.train_reflector.run import run as train_reflector
 from worldenv_core.data.mcap_io import read_episode
+from worldenv_core.data.selection import MissingEpisodesError
 from worldenv_core.manifest import ArtefactError, Manifest
 from worldenv_core.models.checkpoint import load_checkpoint
 from worldenv_core.rl.termination import first_success
@@ -73,7 +74,7 @@ def test_train_reflector_resumes_and_rejects_bad_settings(trained):
         train_reflector(cfg("train_reflector", exp, *SMALL, "expert_only=true", "eta_folds=2"))
     with pytest.raises(ConfigError, match=r"train.label_delay must be an integer >= 0, got -1"):
         train_reflector(cfg("train_reflector", exp, *SMALL, "train.label_delay=-1"))
-    with pytest.raises(ConfigError, match="source=policy.*expert_only=true"):
+    with pytest.raises(MissingEpisodesError, match="source=policy.*expert_only=true"):
         train_reflector(cfg("train_reflector", exp, *SMALL))
 
 

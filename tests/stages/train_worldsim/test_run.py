@@ -7,9 +7,10 @@ import pytest
 
 from stages.train_worldsim.run import run as train_worldsim
 from worldenv_core.data.mcap_io import read_episode
+from worldenv_core.data.selection import MissingEpisodesError
 from worldenv_core.manifest import Manifest
 from worldenv_core.models.checkpoint import load_checkpoint
-from worldenv_core.stage import ConfigError, compose_config
+from worldenv_core.stage import compose_config
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
 SMALL = ["ae.steps=20", "flow.steps=20", "ae.batch_size=4", "flow.batch_size=4", "holdout_every=2", "log_every=5",
@@ -22,7 +23,7 @@ def cfg(exp, *overrides):
 
 
 def test_train_worldsim_without_policy_rollouts_names_the_missing_step(demo_experiment):
-    with pytest.raises(ConfigError, match="source=policy.*expert_only=true"):
+    with pytest.raises(MissingEpisodesError, match="source=policy.*expert_only=true"):
         train_worldsim(cfg(demo_experiment))
 
 
