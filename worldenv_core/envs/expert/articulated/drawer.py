@@ -39,16 +39,7 @@ def _side_grasp_mat(ctx: ExpertContext, approach: np.ndarray) -> np.ndarray:
     the two mirror solutions take the one nearer the current orientation.
     """
     z = approach / (np.linalg.norm(approach) + 1e-9)
-    best, best_ang = None, np.inf
-    cur = ctx.eef_mat()
-    for sx in (1.0, -1.0):
-        x = np.array([0.0, 0.0, sx])
-        y = np.cross(z, x)
-        R = np.stack([x, y, z], axis=1)
-        ang = np.arccos(np.clip((np.trace(R @ cur.T) - 1) / 2, -1, 1))
-        if ang < best_ang:
-            best, best_ang = R, ang
-    return best
+    return _nearest_frame(ctx, z, [np.array([0.0, 0.0, sx]) for sx in (1.0, -1.0)])
 
 
 def _horizontal_push_mat(ctx: ExpertContext, push: np.ndarray, pitch: float = np.pi / 4) -> np.ndarray:
@@ -56,11 +47,16 @@ def _horizontal_push_mat(ctx: ExpertContext, push: np.ndarray, pitch: float = np
     and forearm stay up and back), fingers closing horizontally across ``push``."""
     z = push * np.cos(pitch) - np.array([0.0, 0.0, 1.0]) * np.sin(pitch)
     z /= np.linalg.norm(z) + 1e-9
+    xs = [np.cross(np.array([0.0, 0.0, 1.0]), push) * sx for sx in (1.0, -1.0)]
+    return _nearest_frame(ctx, z, [x / (np.linalg.norm(x) + 1e-9) for x in xs])
+
+
+def _nearest_frame(ctx: ExpertContext, z: np.ndarray, xs: list[np.ndarray]) -> np.ndarray:
+    """Of the grip-site frames with approach axis `z` and closing axis one of `xs` (mirror
+    solutions), the one nearest the current orientation."""
     cur = ctx.eef_mat()
     best, best_ang = None, np.inf
-    for sx in (1.0, -1.0):
-        x = np.cross(np.array([0.0, 0.0, 1.0]), push) * sx
-        x /= np.linalg.norm(x) + 1e-9
+    for x in xs:
         y = np.cross(z, x)
         R = np.stack([x, y, z], axis=1)
         ang = np.arccos(np.clip((np.trace(R @ cur.T) - 1) / 2, -1, 1))
@@ -112,13 +108,7 @@ def pull_drawer(ctx: ExpertContext, name: str, jv: JointView, q_tgt: float, sign
     p = ctx.eef_pos() + out * 0.07
     p[2] = max(p[2] + 0.04, fixture_top(ctx, name) + 0.03)
     yield from servo(ctx, p, R, GRIP_OPEN, tol=0.025, max_steps=25)
-    # turn back towards the starting orientation while heading back to the start position
-    # (nominal arm configuration for whatever comes next)
-    mid = 0.5 * (p + pos_start)
-    mid[2] = max(p[2], pos_start[2])
-    yield from rotate_smoothly(ctx, mid, R_start, GRIP_OPEN)
-    # finish exactly top-down (a residual tilt spoils the next top-down grasp)
-    yield from move_to(ctx, ctx.eef_pos(), yaw=None, gripper=GRIP_OPEN, tol=0.03, rot_tol=0.04, max_steps=15)
+    yield from _back_to_start(ctx, p, pos_start, R_start, GRIP_OPEN)
     return (jv.qpos - start_q) * sign > 0
 
 
@@ -155,8 +145,16 @@ def push_drawer(ctx: ExpertContext, name: str, jv: JointView, q_tgt: float, sign
     p = ctx.eef_pos() - push * 0.06
     p[2] += 0.04
     yield from servo(ctx, p, R, GRIP_CLOSE, tol=0.02, max_steps=20)
+    yield from _back_to_start(ctx, p, pos_start, R_start, GRIP_CLOSE)
+    return (jv.qpos - start_q) * sign > 0
+
+
+def _back_to_start(ctx: ExpertContext, p: np.ndarray, pos_start: np.ndarray, R_start: np.ndarray,
+                   gripper: float) -> Iterator[Action]:
+    """From `p` clear of the drawer: turn back towards the starting orientation while heading back
+    to the start position (the nominal arm configuration for whatever comes next), then finish
+    exactly top-down with the gripper open (a residual tilt spoils the next top-down grasp)."""
     mid = 0.5 * (p + pos_start)
     mid[2] = max(p[2], pos_start[2])
-    yield from rotate_smoothly(ctx, mid, R_start, GRIP_CLOSE)
+    yield from rotate_smoothly(ctx, mid, R_start, gripper)
     yield from move_to(ctx, ctx.eef_pos(), yaw=None, gripper=GRIP_OPEN, tol=0.03, rot_tol=0.04, max_steps=15)
-    return (jv.qpos - start_q) * sign > 0
