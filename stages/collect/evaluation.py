@@ -20,10 +20,11 @@ from worldenv_core.report import ReportContext, markdown_table, titled
 log = logging.getLogger("worldenv.collect")
 
 
-def expert_eval(cfg: DictConfig, task_ids: list[int], run_dir: Path, stage: StageRun) -> list[dict]:
+def expert_eval(cfg: DictConfig, contract: TaskContract, task_ids: list[int], run_dir: Path,
+                stage: StageRun) -> list[dict]:
     task = cfg.task
     n = cfg.expert_eval.init_states
-    jobs = [ExpertEvalJob(TaskContract.from_config(task), t, tuple(range(n)), cfg.seed) for t in task_ids]
+    jobs = [ExpertEvalJob(contract, t, tuple(range(n)), cfg.seed) for t in task_ids]
     rows = [row for rs in run_jobs(evaluate_expert_task, jobs, workers=cfg.workers, launcher=cfg.launcher,
                                    desc=f"expert eval {task.suite}", ray_address=cfg.ray_address, progress=cfg.progress,
                                    unit="task")

@@ -20,10 +20,9 @@ from worldenv_core.data.mcap_io import read_info
 from worldenv_core.data.selection import set_aside_damaged
 from worldenv_core.envs.collection import (ExpertEpisodeJob, PolicyEpisodeJob, collect_expert_episode,
                                            collect_policy_episode)
-from worldenv_core.envs.tasks import resolve_task_ids
 from worldenv_core.manifest import StageRun
 from worldenv_core.parallel import run_jobs
-from worldenv_core.stage import ConfigError, positive_int, require_task, resolve_policy, resolved, start
+from worldenv_core.stage import ConfigError, positive_int, require_task, resolve_policy, resolved, start, task_contract
 
 log = logging.getLogger("worldenv.collect")
 SOURCES = ("expert", "policy", "lerobot")
@@ -55,17 +54,18 @@ def validate(cfg: DictConfig) -> None:
 def run(cfg: DictConfig) -> dict:
     manifest = start(cfg, validate)
     task = cfg.task
-    task_ids = resolve_task_ids(task.suite, task.task_ids)
+    contract = task_contract(cfg)
+    task_ids = contract.resolved_task_ids()
     run_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else manifest.root
     tags = {"task": task.name, "scale": cfg.scale.name, "source": cfg.source}
     summary: dict = {}
     with StageRun(manifest, "collect", tags, resolved(cfg)) as stage:
         if cfg.expert_eval.init_states > 0:
-            summary["expert_eval"] = expert_eval(cfg, task_ids, run_dir, stage)
+            summary["expert_eval"] = expert_eval(cfg, contract, task_ids, run_dir, stage)
         if cfg.source == "lerobot":
             summary["collection"] = import_dataset(cfg, stage)
         elif cfg.episodes_per_task > 0:
-            summary["collection"] = _collect(cfg, task_ids, stage)
+            summary["collection"] = _collect(cfg, contract, task_ids, stage)
         if stage.record.files("episodes"):
             preview(cfg, stage, run_dir)
             if cfg.lerobot_export:
@@ -75,10 +75,10 @@ def run(cfg: DictConfig) -> dict:
     return summary
 
 
-def _collect(cfg: DictConfig, task_ids: list[int], stage: StageRun) -> dict:
+def _collect(cfg: DictConfig, contract: TaskContract, task_ids: list[int], stage: StageRun) -> dict:
     task = cfg.task
     out_dir = episode_dir(cfg)
-    common = dict(contract=TaskContract.from_config(task), seed=cfg.seed, init_mode=cfg.init_states,
+    common = dict(contract=contract, seed=cfg.seed, init_mode=cfg.init_states,
                   post_success_steps=cfg.post_success_steps)
     path = lambda t, k: str(out_dir / f"task{t:02d}" / f"{cfg.source}_{k:04d}.mcap")  # noqa: E731
     if cfg.source == "policy":

@@ -88,11 +88,10 @@ def run(cfg: DictConfig) -> dict:
         trainer.fit([ae_phase(model, optimizers["ae"], frames_of, cfg, device),
                      flow_phase(model, ema, optimizers["flow"], episodes, cameras, cfg, device)])
         final = trainer.save_final(work / "worldsim", model=ema)
-        trainer.finish(stage, final, f"train_worldsim {contract.name}")
         report = evaluate_fidelity(cfg, ema, kinematics, cameras, held_eps, work)
         trainer.tracker.log({f"{k}_h{h}": v[k] for h, v in report["fidelity"].items()
                              for k in ("model_psnr", "model_ssim", "copy_psnr", "copy_ssim")}, trainer.step, group="eval")
-        trainer.tracker.close()
+        trainer.finish(stage, final, f"train_worldsim {contract.name}")  # closes the tracker: after the eval curves
         for name in ("fidelity.json", "fidelity.md"):
             stage.add_output(work / name, kind="report")
         for video in sorted((work / "videos").glob("*.gif")):
