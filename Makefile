@@ -12,7 +12,7 @@ export MUJOCO_GL ?= egl
 export HF_HUB_OFFLINE := 1
 export TOKENIZERS_PARALLELISM := false
 
-.PHONY: setup test test-fast faults smoke pipeline bench expert-table tensorboard clean
+.PHONY: setup test test-fast faults smoke pipeline fidelity bench expert-table tensorboard clean
 
 setup: $(STAMP)
 
@@ -58,10 +58,20 @@ pipeline: setup
 	$(PY) -m stages.collect $(STAGE_ARGS) source=policy post_success_steps=32
 	$(PY) -m stages.train_worldsim $(STAGE_ARGS)
 	$(PY) -m stages.train_reflector $(STAGE_ARGS)
+	# does the imagined env judge like the real one? (the SFT policy's imagined rollouts, paired replay)
+	$(PY) -m stages.evaluate_imagination $(STAGE_ARGS)
 	$(PY) -m stages.post_train_loop $(STAGE_ARGS)
 	# termination=all: each episode once to the horizon, oracle / fixed / reflector read off it
 	for policy in sft post_trained; do \
 	  $(PY) -m stages.evaluate $(STAGE_ARGS) policy_from=$$policy termination=all || exit 1; done
+
+# Verdict fidelity and the world model as a policy evaluator: each policy at each Laplace noise scale acts
+# in imagination, its actions are replayed in the real simulator (needs the pipeline's stages up to
+# train_reflector). make fidelity FIDELITY_POLICIES=sft,post_trained
+FIDELITY_POLICIES ?= sft
+FIDELITY_NOISE ?= 1.0,0.5,2.0,3.0,4.0
+fidelity: setup
+	$(PY) -m stages.evaluate_imagination $(STAGE_ARGS) 'policies=[$(FIDELITY_POLICIES)]' 'noise_scales=[$(FIDELITY_NOISE)]'
 
 # The same pipeline on the tiny task and scale: minutes, proves the plumbing.
 smoke:

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from stages.collect import evaluation as collect
 from stages.evaluate import evaluation as evaluate
+from stages.evaluate_imagination import evaluation as evaluate_imagination
 from stages.post_train_loop import evaluation as post_train_loop
 from stages.train_reflector import evaluation as train_reflector
 from stages.train_worldsim import evaluation as train_worldsim
@@ -20,7 +21,8 @@ from worldenv_core.manifest import Manifest, StageRecord
 from worldenv_core.report import ReportContext, markdown_table, titled
 
 # Results first (what a reader came for), then how the parts that produced them did.
-SECTIONS = (evaluate.section, post_train_loop.section, train_worldsim.section, train_reflector.section, collect.section)
+SECTIONS = (evaluate.section, evaluate_imagination.section, post_train_loop.section, train_worldsim.section,
+            train_reflector.section, collect.section)
 
 
 def write_report(experiment_dir: str | Path, task: str) -> Path:
@@ -29,6 +31,7 @@ def write_report(experiment_dir: str | Path, task: str) -> Path:
     lines = [f"# {task}: experiment report"]
     for section in SECTIONS:
         lines += section(ctx)
+    lines += real_episodes_section(ctx)
     lines += wall_time_section(ctx)
     path = ctx.out / "report.md"
     tmp = path.with_suffix(".md.tmp")
@@ -46,13 +49,47 @@ def _producer(record: StageRecord, records: list[StageRecord]) -> StageRecord:
                  and made <= {a.sha256 for a in r.outputs}), record)
 
 
-def wall_time_section(ctx: ReportContext) -> list[str]:
+def _latest_by_tags(ctx: ReportContext) -> list[StageRecord]:
+    """The newest record of each stage and tag set of this task: the pipeline as it stands."""
     latest = {}
     for r in ctx.records:
         if r.tags.get("task") == ctx.task:
             latest[(r.stage, json.dumps(r.tags, sort_keys=True))] = r
+    return list(latest.values())
+
+
+# What a stage's real-simulator episodes are for; post_train_loop's only monitor (never train).
+PURPOSE = {"collect": "training data", "evaluate": "evaluation", "evaluate_imagination": "evaluation (paired replay)",
+           "post_train_loop": "evaluation (monitoring during training)"}
+
+
+def real_episodes_section(ctx: ReportContext) -> list[str]:
+    """Real-simulator episodes, the resource the method exists to save, per stage run (newest of
+    each tag set) and in total; every attempt counts, failed expert attempts included."""
+    rows, totals = [], {}
+    for r in _latest_by_tags(ctx):
+        if r.stage not in PURPOSE:
+            continue
+        n = r.metrics.get("real_episodes")
+        purpose = PURPOSE[r.stage] + (f": {r.tags['source']}" if r.stage == "collect" else "")
+        rows.append([r.stage, ", ".join(f"{k}={v}" for k, v in r.tags.items() if k not in ("task", "worldsim", "reflector")),
+                     purpose, "not recorded" if n is None else n])
+        if n is not None:
+            key = "training data" if r.stage == "collect" else "evaluation"
+            totals[key] = totals.get(key, 0) + n
+    if not rows:
+        return []
+    total = ", ".join(f"{k}: {v}" for k, v in sorted(totals.items(), reverse=True))
+    return titled("Real-simulator episodes", [
+        "Each stage's newest run; an episode is one reset of the real simulator (expert attempts that failed count, "
+        "and a paired replay or a closed-loop rollout counts one). The world model, the reflector (also when trained "
+        "on imagined replays: their labels are the recorded episodes' own) and post-training's updates use none.", "",
+        *markdown_table(["stage", "tags", "for", "real episodes"], rows), "", f"Total: {total}."])
+
+
+def wall_time_section(ctx: ReportContext) -> list[str]:
     rows = []
-    for r in latest.values():
+    for r in _latest_by_tags(ctx):
         made = _producer(r, ctx.records)
         rows.append([r.stage, ", ".join(f"{k}={v}" for k, v in r.tags.items() if k != "task"), f"`{made.id}`",
                      f"{made.wall_time_s:.0f}"])

@@ -60,6 +60,20 @@ def auroc(scores, labels) -> float:
     return float((ranks[labels].sum() - n_pos * (n_pos + 1) / 2) / (n_pos * n_neg))
 
 
+def spearman(x, y) -> float:
+    """Spearman's rank correlation (ties share their mean rank); nan when either side is constant."""
+    import numpy as np
+
+    def ranks(v):
+        _, inverse, counts = np.unique(np.asarray(v, dtype=float), return_inverse=True, return_counts=True)
+        return (np.cumsum(counts) - (counts - 1) / 2)[inverse]
+
+    rx, ry = ranks(x), ranks(y)
+    if len(rx) < 2 or rx.std() == 0 or ry.std() == 0:
+        return float("nan")
+    return float(np.corrcoef(rx, ry)[0, 1])
+
+
 def binary_metrics(scores, labels, threshold: float) -> dict:
     """Accuracy, precision, recall, F1 of `scores > threshold`, and AUROC, with the counts."""
     import numpy as np

@@ -8,6 +8,7 @@ that run's manifest tags and metrics, never in its config."""
 from __future__ import annotations
 
 import json
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -62,6 +63,17 @@ class ReportContext:
                 path = self.manifest.root / art.path
                 return json.loads(path.read_text()) if path.exists() else None
         return None
+
+    def copy(self, path: str, name: str | None = None, folder: str = "videos") -> str | None:
+        """Copy an artefact (a path relative to the experiment) beside the report, so the report
+        folder stands on its own; returns its path relative to the report, None if it is gone."""
+        src = self.manifest.root / path
+        if not src.exists():
+            return None
+        dst = self.out / folder / (name or src.name)
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(src, dst)
+        return f"{folder}/{dst.name}"
 
     def history(self, record: StageRecord) -> list[dict]:
         """A training run's history: the JSON written beside its curves plot."""

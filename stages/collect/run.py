@@ -71,6 +71,7 @@ def run(cfg: DictConfig) -> dict:
             if cfg.lerobot_export:
                 summary["lerobot_export"] = export_collection(cfg, stage)
         stage.metrics.update(summary)
+        stage.metrics["real_episodes"] = summary.get("collection", {}).get("real_episodes", 0)
         (run_dir / "collect_summary.json").write_text(json.dumps(summary, indent=2))
     return summary
 
@@ -110,13 +111,17 @@ def _collect(cfg: DictConfig, contract: TaskContract, task_ids: list[int], stage
         if r["status"] in ("kept", "exists"):
             stage.add_output(r["path"], kind="episodes")
     frames = sum(r["frames"] for r in kept)
+    # Real-simulator episodes this collection cost: every attempt, also those of failed expert
+    # demos and of episodes an earlier sitting wrote (their attempts travel in their metadata).
+    real = sum(r.get("attempts", 1) for r in results if r["status"] in ("kept", "failed"))
+    real += sum(read_info(r["path"]).meta.attempts for r in results if r["status"] == "exists")
     metrics = {
         "episodes": len(jobs), "kept": status["kept"], "resumed": status["exists"], "failed": status["failed"],
         "attempts_per_kept": sum(r["attempts"] for r in kept) / len(kept) if kept else None,
         "kept_frames": frames, "wall_s": round(wall, 2),
         "kept_frames_per_s": round(frames / wall, 2) if kept else None,
         "render_s": round(sum(r.get("render_s", 0.0) for r in kept), 2),
-        "episode_dir": str(out_dir), "recollected_damaged": repaired,
+        "episode_dir": str(out_dir), "recollected_damaged": repaired, "real_episodes": real,
     }
     if cfg.source == "policy":  # over every episode of the collection, resumed ones included
         done = [read_info(r["path"]).meta.success for r in results if r["status"] in ("kept", "exists")]

@@ -6,7 +6,6 @@ ablations as far as they were run (the paper's Table 2)."""
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -174,13 +173,9 @@ def video_lines(ctx: ReportContext, per_policy: int = 3) -> list[str]:
         rec = newest(evals, termination="reflector") or newest(evals, termination="oracle")
         videos = sorted(rec.files("video"), key=lambda a: ("failure" in a.path, a.path)) if rec else []
         for art in videos[:per_policy]:
-            src = ctx.manifest.root / art.path
-            if not src.exists():
-                continue
-            dst = ctx.out / "videos" / f"{policy}_{rec.tags['termination']}_{src.name}"
-            dst.parent.mkdir(exist_ok=True)
-            shutil.copyfile(src, dst)
-            lines.append(f"![{policy}, {rec.tags['termination']} termination: {src.stem}](videos/{dst.name})")
+            copied = ctx.copy(art.path, f"{policy}_{rec.tags['termination']}_{Path(art.path).name}")
+            if copied:
+                lines.append(f"![{policy}, {rec.tags['termination']} termination: {Path(art.path).stem}]({copied})")
     return lines
 
 

@@ -115,6 +115,8 @@ def run(cfg: DictConfig) -> dict:
             summaries[mode] = record_mode(stage, mode, [r for r in rows if r["termination"] == mode], videos,
                                           {"policy": policy_path, "init_states": cfg.init_states, "suite": suite,
                                            "max_steps": max_steps}, reflector_path, eta, out_dir)
+            # termination=all: the modes share one rollout per episode, counted once (on the first mode)
+            stage.metrics["real_episodes"] = summaries[mode]["episodes"] if mode == modes[0] else 0
     report = write_report(manifest.root, task.name)  # the experiment's report, now with this evaluation
     log.info("experiment report: %s", report)
     return summaries if cfg.termination == "all" else summaries[cfg.termination]

@@ -19,7 +19,8 @@ import torch
 from omegaconf import DictConfig
 
 from stages.post_train_loop.evaluation import imagined_success, real_success, record_imagined, with_gap
-from stages.post_train_loop.training import build_env, contexts_from_episodes, rl_phase
+from stages.post_train_loop.training import contexts_from_episodes, rl_phase
+from worldenv_core.imagination.env import build_imagined_env
 from worldenv_core.data.selection import collected_episodes
 from worldenv_core.manifest import StageRun
 from worldenv_core.models.checkpoint import load_checkpoint, read_config
@@ -73,7 +74,8 @@ def run(cfg: DictConfig) -> dict:
         encode = lambda s: encoder(s).to(device)  # noqa: E731
         eta = reflector_eta(reflector_path, cfg.eta)
         stage.record.tags["eta"] = eta  # the threshold used, also when it is the reflector's own
-        env, camera = build_env(cfg, contract, worldsim_path, reflector_path, eta, encode, device)
+        env, camera = build_imagined_env(worldsim_path, reflector_path, eta, encode, rl.horizon, rl.sampling_steps, device,
+                                         contract)
         policy, pmeta = load_checkpoint(policy_path, "policy", contract, device=str(device))
         if policy.cameras != [camera]:
             raise ConfigError(f"the policy looks at {policy.cameras}, but the world simulator imagines only {camera!r}")
@@ -122,6 +124,9 @@ def run(cfg: DictConfig) -> dict:
         stage.metrics.update({"iterations": rl.iterations, "train_wall_s": round(trainer.wall_s, 1),
                               "device": str(device), "final_mean_reward": history[-1].get("mean_reward"),
                               "real_success": by_step("real_success"), "imagined_reward": by_step("imagined_reward"),
-                              "imagined_success": by_step("imagined_success")})
+                              "imagined_success": by_step("imagined_success"),
+                              # monitoring only: the real simulator never feeds the training
+                              "real_episodes": len(by_step("real_success")) * cfg.eval.init_states
+                              * len(contract.resolved_task_ids())})
         log.info("post-trained policy saved to %s; metrics %s", final, json.dumps(stage.metrics))
     return stage.metrics

@@ -9,37 +9,15 @@ from pathlib import Path
 
 import torch
 
-from worldenv_core.contract import TaskContract
 from worldenv_core.data.mcap_io import read_episode
-from worldenv_core.errors import ConfigError
-from worldenv_core.imagination.env import Context, ImaginedEnv
-from worldenv_core.imagination.simulator import ImaginedSimulator
-from worldenv_core.kinematics.camera import PinholeCamera
-from worldenv_core.models.checkpoint import load_checkpoint, read_config
+from worldenv_core.imagination.env import Context
 from worldenv_core.rl.loop import collect_rollouts, ppo_update
 from worldenv_core.training import Phase, per_step, step_seed
 
 
 def contexts_from_episodes(paths: list[Path], camera: str) -> list[Context]:
-    out = []
-    for p in paths:
-        ep = read_episode(p, cameras=[camera])
-        out.append(Context(task_id=ep.meta.task_id, instruction=ep.meta.instruction,
-                           frame=torch.from_numpy(ep.images[camera][0]).permute(2, 0, 1).contiguous(),
-                           proprio=torch.from_numpy(ep.proprio[0])))
-    return out
-
-
-def build_env(cfg, contract: TaskContract, worldsim_path: str, reflector_path: str, eta: float, encoder,
-              device) -> tuple[ImaginedEnv, str]:
-    """The imagined environment: the world simulator, each task's camera, the reflector as reward."""
-    meta = read_config(worldsim_path)["meta"]
-    cameras = {int(t): PinholeCamera.from_dict(c) for t, c in meta["cameras"].items()}
-    sim = ImaginedSimulator.from_checkpoint(worldsim_path, min(cameras), cfg.rl.sampling_steps, device, contract)
-    reflector, rmeta = load_checkpoint(reflector_path, "reflector", contract, device=str(device))
-    if rmeta["camera"] != meta["camera"]:
-        raise ConfigError(f"the reflector watches {rmeta['camera']!r} but the world simulator imagines {meta['camera']!r}")
-    return ImaginedEnv(sim, cameras, reflector, encoder, eta, cfg.rl.horizon), meta["camera"]
+    """LOOP's contexts: the first frame, proprio and instruction of each collected episode."""
+    return [Context.from_episode(read_episode(p, cameras=[camera]), camera) for p in paths]
 
 
 def rl_phase(policy, optimizer, env, contexts: list[Context], rl, encode, seed: int) -> Phase:

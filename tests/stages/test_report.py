@@ -5,6 +5,7 @@ import json
 
 from stages.collect import evaluation as collect
 from stages.evaluate import evaluation as evaluate
+from stages.evaluate_imagination import evaluation as evaluate_imagination
 from stages.post_train_loop import evaluation as post_train_loop
 from stages.report import SECTIONS, write_report
 from stages.train_reflector import evaluation as train_reflector
@@ -28,6 +29,7 @@ def _experiment(root):
         for i in range(3):
             s.add_output(_write(root / "data" / f"ep{i}.mcap", f"episode {i}"), kind="episodes")
         s.metrics["collection"] = {"kept_frames": 120, "success_rate": 1 / 3}
+        s.metrics["real_episodes"] = 3
     collected = m.latest("collect")
     with StageRun(m, "train_worldsim", {**TAGS, "data": "expert+policy"}, {}) as s:
         s.use(collected, kind="episodes")
@@ -60,6 +62,18 @@ def _experiment(root):
                        "per_task": [{"task_id": 0, "task": "pick", "success_rate": sum(success) / 2}]}
             s.add_output(_write(root / "ev" / policy / "results.json", summary), kind="report")
             s.add_output(_write(root / "ev" / policy / "episodes.json", rows), kind="report")
+            s.metrics["real_episodes"] = 2
+    with StageRun(m, "evaluate_imagination", {**TAGS, "eta": 0.5, "sampling_steps": None, "worldsim": "w1",
+                                              "reflector": "r1"}, {}) as s:
+        row = {"task_id": 0, "context_kind": "init", "imagined_steps": 16, "real_first_success": 8, "real_reward": 0.9,
+               "frames": {"8": [20.0, 0.6]}, "copy": {"8": [18.0, 0.5]}}
+        rows = [{**row, "imagined_success": i < 2, "imagined_reward": 0.9 - 0.2 * i, "real_success": i in (0, 2)}
+                for i in range(4)]
+        results = {"sft@1": {"rows": rows, "closed_loop": [True, False], "imagined_rollouts": 4, "real_episodes": 6},
+                   "sft@3": {"rows": rows[:2], "closed_loop": [False, False], "imagined_rollouts": 2, "real_episodes": 4}}
+        summary = evaluate_imagination.summarise(results, ["sft@1", "sft@3"], 0.5, [8])
+        s.add_output(_write(root / "fi" / "fidelity.json", summary), kind="report")
+        s.metrics["real_episodes"] = summary["real_episodes"]
     return m
 
 
@@ -79,6 +93,9 @@ def test_each_stage_renders_its_own_section(tmp_path):
     assert "VLM yes/no | 10 steps, label delay 0, mining every 5 > 0.3 | 0.5 | 4 | real | 0.900" in text
     text = "\n".join(collect.section(ctx))
     assert "| policy | tiny | 3 | 120 | 33 % |" in text
+    text = "\n".join(evaluate_imagination.section(ctx))  # pairs: hit, hack, miss, agreed failure
+    assert "| w1 | r1 | 0.50 | default | sft@1 | 4 | 0.750 (target >= 0.9) | 0.500 (target >= 0.8) | 50.0 % (target <= 0.1) |" in text
+    assert "| 50.0 % / 50.0 % | 0.0 % (met) | 8 |" in text and "| sft@3 | 100.0 % | 50.0 % | 0.0 % |" in text
 
 
 def test_the_report_is_the_sections_in_order_then_wall_time(tmp_path):
@@ -86,9 +103,13 @@ def test_the_report_is_the_sections_in_order_then_wall_time(tmp_path):
     text = write_report(tmp_path, "tiny").read_text()
     headings = [line for line in text.splitlines() if line.startswith("## ")]
     assert headings == ["## Success in the real simulator", "## Ablations (the paper's Table 2, as far as run)",
-                        "## Post-training (LOOP in imagination)", "## World simulator (open loop on held-out episodes)",
+                        "## Verdict fidelity: imagined against real", "## Post-training (LOOP in imagination)", "## World simulator (open loop on held-out episodes)",
                         "## Reflector (held-out episodes, newest first)", "## Data (newest collection of each source)",
-                        "## Wall time per stage"]
+                        "## Real-simulator episodes", "## Wall time per stage"]
+    accounting = text.split("## Real-simulator episodes")[1].split("\n## ")[0]
+    assert "| collect | scale=tiny, source=policy | training data: policy | 3 |" in accounting
+    assert "| evaluate_imagination | eta=0.5, sampling_steps=None, scale=tiny | evaluation (paired replay) | 10 |" in accounting
+    assert "Total: training data: 3, evaluation: 14." in accounting
     ctx = ReportContext(m, "tiny", tmp_path / "report")
     for section in SECTIONS:  # every section's lines appear as it renders them
         assert "\n".join(section(ctx)) in text
@@ -96,7 +117,7 @@ def test_the_report_is_the_sections_in_order_then_wall_time(tmp_path):
 
 def test_sections_are_empty_on_an_experiment_without_their_stage(tmp_path):
     ctx = ReportContext(Manifest(tmp_path), "tiny", tmp_path)
-    assert [s(ctx) for s in SECTIONS[1:]] == [[], [], [], []]
+    assert [s(ctx) for s in SECTIONS[1:]] == [[], [], [], [], []]
     assert "No evaluation yet" in "\n".join(evaluate.section(ctx))
 
 

@@ -149,14 +149,17 @@ class Timer:
 
 
 def policy_episode(env: LiberoEnv, runner, init_state, seed: int, max_steps: int,
-                   stop_on_success: bool = True, post_success_steps: int = 0, stop_when=None) -> Trajectory:
+                   stop_on_success: bool = True, post_success_steps: int = 0, stop_when=None,
+                   start: Callable[[], Frame] | None = None) -> Trajectory:
     """Run a policy (a `PolicyRunner`) chunk by chunk, rendering the cameras it sees only at chunk
     boundaries, and logging its mu/beta for every executed action.
 
     stop_when: optional callable (camera -> (H, W, 3) image) -> bool asked at every chunk boundary
-    (a reflector's dynamic termination, see `ReflectorStop`); its `cameras` are rendered too."""
+    (a reflector's dynamic termination, see `ReflectorStop`); its `cameras` are rendered too.
+    start: puts the env where the episode begins (default: reset to `init_state` with `seed`),
+    e.g. `envs.replay.restore` for a frame in the middle of a recorded episode."""
     try:
-        first = env.reset(init_state=init_state, seed=seed)
+        first = start() if start is not None else env.reset(init_state=init_state, seed=seed)
     except Exception as e:  # noqa: BLE001
         return Trajectory(frames=[], actions=[], error=f"reset failed: {type(e).__name__}: {e}")
     queue: list = []

@@ -26,6 +26,13 @@ class Context:
     frame: torch.Tensor  # (3, H, W) uint8: o_1
     proprio: torch.Tensor  # (7,): s_1
 
+    @classmethod
+    def from_episode(cls, ep, camera: str, t: int = 0) -> "Context":
+        """Frame `t` of a recorded episode (LOOP starts from t = 0)."""
+        return cls(task_id=ep.meta.task_id, instruction=ep.meta.instruction,
+                   frame=torch.from_numpy(ep.images[camera][t]).permute(2, 0, 1).contiguous(),
+                   proprio=torch.from_numpy(ep.proprio[t]))
+
 
 @dataclass
 class StepResult:
@@ -92,3 +99,19 @@ class ImaginedEnv:
             chunk_frames=out.frames if self.decode == "all" else None,
             chunk_proprio=out.proprio if self.decode == "all" else None)
         return self.state
+
+
+def build_imagined_env(worldsim_path: str, reflector_path: str, eta: float, encoder, horizon: int,
+                       sampling_steps: int | None, device, contract=None) -> tuple[ImaginedEnv, str]:
+    """The imagined environment LOOP trains in: the world simulator with each task's camera and
+    the reflector as reward. Returns it and the camera it imagines."""
+    from worldenv_core.models.checkpoint import CheckpointError, load_checkpoint, read_config
+
+    meta = read_config(worldsim_path)["meta"]
+    cameras = {int(t): PinholeCamera.from_dict(c) for t, c in meta["cameras"].items()}
+    sim = ImaginedSimulator.from_checkpoint(worldsim_path, min(cameras), sampling_steps, device, contract)
+    reflector, rmeta = load_checkpoint(reflector_path, "reflector", contract, device=str(device))
+    if rmeta["camera"] != meta["camera"]:
+        raise CheckpointError(f"the reflector watches {rmeta['camera']!r} but the world simulator imagines "
+                              f"{meta['camera']!r}")
+    return ImaginedEnv(sim, cameras, reflector, encoder, eta, horizon), meta["camera"]

@@ -67,11 +67,12 @@ class RolloutBatch:
 
 @torch.no_grad()
 def collect_rollouts(policy, env, contexts: list, n_rollouts: int, encoder,
-                     generator: torch.Generator | None = None, observer=None) -> RolloutBatch:
+                     generator: torch.Generator | None = None, observer=None, noise_scale: float = 1.0) -> RolloutBatch:
     """N rollouts per context from the frozen behaviour policy (Algorithm 1, lines 5-25): actions
     ~ Laplace(mu, exp(beta)); all C x N rollouts advance together until every one is done.
     `observer` (e.g. `ImaginedRecorder`) sees the reset state and every step: `on_reset(state)`,
-    `on_step(actions, mu, beta, state)` with actions and mu in the simulator's units."""
+    `on_step(actions, mu, beta, state)` with actions and mu in the simulator's units. `noise_scale`
+    multiplies the Laplace scale (1: the policy's own; evaluating a noisier or calmer variant)."""
     from worldenv_core.models.laplace import laplace_log_prob, laplace_sample
 
     if n_rollouts < 2:
@@ -86,7 +87,7 @@ def collect_rollouts(policy, env, contexts: list, n_rollouts: int, encoder,
     frames, proprio, actions, logps, masks, betas = [], [], [], [], [], []
     while not state.done.all():
         mu, beta = policy({camera: state.frames}, state.proprio, lang)
-        a = laplace_sample(mu, beta, generator)
+        a = laplace_sample(mu, beta, generator, noise_scale)
         frames.append(state.frames), proprio.append(state.proprio), actions.append(a)
         logps.append(laplace_log_prob(a, mu, beta))  # (R, K): one log-prob per executed step
         masks.append((~state.done).float()[:, None].expand(-1, a.shape[1]))

@@ -6,38 +6,23 @@ import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from stages.post_train_loop.run import run as post_train_loop
-from stages.train_policy.run import run as train_policy
 from stages.train_reflector.run import run as train_reflector
-from stages.train_worldsim.run import run as train_worldsim
+from tests.stages.conftest import REFLECTOR, stage_cfg
 from worldenv_core.data.mcap_io import read_episode, read_reflector_scores
 from worldenv_core.manifest import Manifest
 from worldenv_core.models.checkpoint import load_checkpoint
-from worldenv_core.stage import ConfigError, compose_config
+from worldenv_core.stage import ConfigError
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
 LOOP = ["expert_only=true", "rl.iterations=2", "rl.contexts_per_iteration=1", "rl.n_rollouts=2", "rl.horizon=16",
         "rl.minibatch=2", "eval.every=2", "eval.init_states=1", "eval.workers=1", "progress=false"]
 
-REFLECTOR = ["expert_only=true", "train.steps=2", "train.batch_size=2", "holdout_every=2", "reflector.d_model=16",
-             "reflector.layers=1", "reflector.heads=2", "reflector.frame_encoder.widths=[8,16]",
-             "reflector.frame_encoder.keypoints=4", "plots=1", "imagined.enabled=false", "eta_folds=0"]
-
-
-def cfg(stage, exp, *overrides):
-    return compose_config(stage, ["+task=tiny", "scale=tiny", f"experiment_dir={exp}", *overrides])
+cfg = stage_cfg
 
 
 @pytest.fixture(scope="module")
-def trained(demo_experiment):
-    exp = demo_experiment
-    train_policy(cfg("train_policy", exp, "train.steps=10", "scale_head.steps=4", "demos_per_task=1",
-                     "policy.hidden=32", "policy.backbone.widths=[8,8,8,8]", "policy.backbone.keypoints=4"))
-    train_worldsim(cfg("train_worldsim", exp, "expert_only=true", "ae.steps=4", "flow.steps=4", "ae.batch_size=2",
-                       "flow.batch_size=2", "holdout_every=2", "worldsim.ae_widths=[8,16]", "worldsim.width=16",
-                       "worldsim.map_channels=4", "fidelity.horizons=[8]", "fidelity.starts_per_episode=1",
-                       "fidelity.videos=0", "worldsim.sampling_steps=1"))
-    train_reflector(cfg("train_reflector", exp, *REFLECTOR))
-    return exp, post_train_loop(cfg("post_train_loop", exp, *LOOP))
+def trained(tiny_models):
+    return tiny_models, post_train_loop(cfg("post_train_loop", tiny_models, *LOOP))
 
 
 def test_loop_records_a_post_trained_policy_with_its_real_success_curve(trained, contract):

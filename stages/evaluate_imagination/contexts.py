@@ -1,0 +1,90 @@
+"""The contexts paired replay starts from, none of which the world model or the reflector trained
+on: the first benchmark init states of each task (collections start from fresh placements), and
+frames in the middle of held-out episodes (held out by both the world model and the reflector)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from worldenv_core.contract import TaskContract
+from worldenv_core.data.mcap_io import read_episode
+from worldenv_core.data.selection import collected_episodes, episode_key
+from worldenv_core.envs.recording import cached_env
+from worldenv_core.envs.replay import RealStart, restore
+from worldenv_core.errors import ConfigError
+from worldenv_core.imagination.env import Context
+from worldenv_core.models.checkpoint import read_config
+from worldenv_core.parallel import run_jobs
+
+
+@dataclass
+class PairedContext:
+    start: RealStart  # where the real simulator starts
+    context: Context  # what imagination starts from: the same frame, proprio and instruction
+    kind: str  # "init" | "episode"
+
+
+@dataclass(frozen=True)
+class StartFrameJob:
+    contract: TaskContract
+    start: RealStart
+
+
+def start_frame(job: StartFrameJob) -> dict:
+    """The real frame and proprio at a benchmark init state (what imagination starts from)."""
+    c = job.contract
+    env = cached_env(c.suite, job.start.task_id, c.cameras, c.image_size, render=True)
+    frame = restore(env, job.start)
+    return {"start": job.start, "image": env.render([c.cameras[0]])[c.cameras[0]], "proprio": frame.proprio,
+            "instruction": env.instruction}
+
+
+def mid_episode_frames(success: np.ndarray, length: int, n: int) -> list[int]:
+    """n frames spread over the part of an episode before its first success (the task not yet
+    done, so there is something left to judge), avoiding the first and the success frame."""
+    hits = np.flatnonzero(success)
+    end = int(hits[0]) if len(hits) else length
+    return sorted({int(round(end * (i + 1) / (n + 1))) for i in range(n)} - {0})
+
+
+def held_out_by_both(manifest, stage, contract: TaskContract, scale: str, worldsim: str, reflector: str) -> list[Path]:
+    """Collected episodes that neither the world model nor the reflector trained on (their
+    checkpoints list their held-out episodes)."""
+    unseen = None
+    for path in (worldsim, reflector):
+        keys = read_config(path)["meta"].get("held_out")
+        if keys is None:
+            raise ConfigError(f"{path} does not list the episodes it held out; retrain it to pair on held-out episodes")
+        unseen = set(keys) if unseen is None else unseen & set(keys)
+    expert_only = bool(read_config(worldsim)["meta"].get("expert_only", False))
+    return [p for p in collected_episodes(manifest, stage, contract.name, scale, expert_only) if episode_key(p) in unseen]
+
+
+def build_contexts(cfg, contract: TaskContract, held: list[Path]) -> list[PairedContext]:
+    """init_states benchmark init states per task, then episode_frames frames of the first
+    episodes_per_task held-out episodes of each task."""
+    c, camera = cfg.contexts, contract.cameras[0]
+    tasks = contract.resolved_task_ids()
+    jobs = [StartFrameJob(contract, RealStart(task_id=t, init_state=i)) for t in tasks for i in range(c.init_states)]
+    out = []
+    for r in sorted(run_jobs(start_frame, jobs, workers=cfg.workers, launcher=cfg.launcher, desc="context frames",
+                             ray_address=cfg.ray_address, progress=cfg.progress, unit="ctx"),
+                    key=lambda r: (r["start"].task_id, r["start"].init_state)):
+        ctx = Context(task_id=r["start"].task_id, instruction=r["instruction"],
+                      frame=torch.from_numpy(r["image"]).permute(2, 0, 1).contiguous(), proprio=torch.from_numpy(r["proprio"]))
+        out.append(PairedContext(r["start"], ctx, "init"))
+    per_task: dict[int, int] = {}
+    for path in held:
+        ep = read_episode(path, cameras=[camera], load_sim_state=False)
+        t = ep.meta.task_id
+        if t not in tasks or per_task.get(t, 0) >= c.episodes_per_task:
+            continue
+        per_task[t] = per_task.get(t, 0) + 1
+        for f in mid_episode_frames(ep.success, ep.length, c.episode_frames):
+            out.append(PairedContext(RealStart(task_id=t, seed=ep.meta.seed, episode=str(path), frame=f),
+                                     Context.from_episode(ep, camera, f), "episode"))
+    return out

@@ -1,0 +1,207 @@
+"""evaluate_imagination's measurements and its section of the experiment report: one policy's
+imagined rollouts paired with their real replays, the summary over policies, the plot of
+imagined against real success, side-by-side GIFs, and the before/after table of runs."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from stages.evaluate_imagination.contexts import PairedContext
+from worldenv_core.contract import TaskContract
+from worldenv_core.envs.replay import PairedReplayJob, replay_context
+from worldenv_core.imagination.verdict import (evaluator_metrics, frame_metrics, imagine, pair, per_task,
+                                               verdict_metrics)
+from worldenv_core.models.checkpoint import load_checkpoint
+from worldenv_core.parallel import run_jobs
+from worldenv_core.report import ReportContext, markdown_table, titled
+from worldenv_core.viz import figure, montage_video, save_figure
+
+BATCH_CONTEXTS = 16  # contexts imagined together (x rollouts each): bounds memory at any scale
+# The issue's targets for the headline policy (docs/fidelity.md).
+TARGETS = {"auroc": (">=", 0.90), "f1": (">=", 0.80), "hack_rate": ("<=", 0.10), "max_task_gap": ("<=", 0.05),
+           "spearman": (">=", 0.80)}
+
+
+@dataclass(frozen=True)
+class Variant:
+    name: str  # "<policy ref>@<noise scale>"
+    path: str  # the policy checkpoint
+    noise_scale: float
+
+
+def pair_variant(cfg, contract: TaskContract, v: Variant, env, contexts: list[PairedContext], encode, reflector: str,
+                 eta: float, device, gifs: int, out: Path) -> dict:
+    """One policy: imagine `rollouts` per context, replay each in the real simulator, pair them."""
+    policy, _ = load_checkpoint(v.path, "policy", contract, device=str(device))
+    g = torch.Generator().manual_seed(cfg.seed)
+    keep, n = sorted({0, *cfg.horizons}), cfg.rollouts
+    full = {c * n for c in range(min(gifs, len(contexts)))}  # the first rollout of the first contexts: GIFs
+    runs = []
+    for b in range(0, len(contexts), BATCH_CONTEXTS):
+        part = contexts[b:b + BATCH_CONTEXTS]
+        got = imagine(policy, env, [c.context for c in part], n, encode, g, v.noise_scale, keep,
+                      {r - b * n for r in full if b * n <= r < (b + len(part)) * n})
+        for r in got:
+            r.context += b
+        runs += got
+    jobs = [PairedReplayJob(contract, pc.start, actions=tuple(r.actions for r in runs[i * n:(i + 1) * n]),
+                            keep=tuple(None if i * n + k in full else tuple(keep) for k in range(n)),
+                            reflector_path=reflector, policy_path=v.path if cfg.closed_loop_rollouts else None,
+                            closed_loop_seeds=tuple(cfg.seed * 1_000_003 + i * 101 + k for k in range(cfg.closed_loop_rollouts)),
+                            noise_scale=v.noise_scale, horizon=cfg.horizon)
+            for i, pc in enumerate(contexts)]
+    real = {r["start"].key: r for r in run_jobs(replay_context, jobs, workers=cfg.workers, launcher=cfg.launcher,
+                                                 desc=f"real replay {v.name}", ray_address=cfg.ray_address,
+                                                 progress=cfg.progress, unit="ctx")}
+    rows, closed = [], []
+    for i, pc in enumerate(contexts):
+        res = real[pc.start.key]
+        closed += [c["success"] for c in res["closed_loop"]]
+        for k, rep in enumerate(res["replays"]):
+            run = runs[i * n + k]
+            row = pair(run, rep, eta, pc.start.task_id, pc.kind, v.name)
+            row["start"] = pc.start.key
+            row["frames"] = {str(h): m for h, m in frame_metrics(run.frames, rep["frames"]).items() if h in cfg.horizons}
+            row["copy"] = {str(h): m for h, m in frame_metrics({s: rep["frames"][0] for s in rep["frames"]},
+                                                                rep["frames"]).items() if h in cfg.horizons}
+            rows.append(row)
+            if i * n + k in full:
+                steps = sorted(set(run.frames) & set(rep["frames"]))
+                verdict = f"imagined-{'success' if run.success else 'failure'}_real-{'success' if rep['success'] else 'failure'}"
+                montage_video([np.stack([run.frames[s] for s in steps]), np.stack([rep["frames"][s] for s in steps])],
+                              out / "videos" / f"{v.name.replace('/', '_')}_ctx{i:03d}_task{pc.start.task_id:02d}_{verdict}.gif",
+                              max_frames=len(steps), fps=4)
+    return {"rows": rows, "closed_loop": closed, "imagined_rollouts": len(runs),
+            "real_episodes": len(rows) + len(closed)}
+
+
+def summarise(results: dict, names: list[str], eta: float, horizons: list[int]) -> dict:
+    """The headline (the first policy's pairs), per context kind and task, frames by horizon, and
+    the world model as a policy evaluator over all policies."""
+    per_policy = {}
+    for name in names:
+        m = verdict_metrics(results[name]["rows"], eta)
+        closed = results[name]["closed_loop"]
+        per_policy[name] = {**m, "closed_loop_success": float(np.mean(closed)) if closed else None,
+                            "real_episodes": results[name]["real_episodes"]}
+    rows = results[names[0]]["rows"]
+    tasks = per_task(rows)
+    frames = {}
+    for h in horizons:
+        got = [r for r in rows if str(h) in r["frames"]]
+        frames[h] = {"n": len(got), **{f"{who}_{what}": float(np.mean([r[key][str(h)][j] for r in got])) if got else None
+                                       for who, key in (("model", "frames"), ("copy", "copy"))
+                                       for j, what in enumerate(("psnr", "ssim"))}}
+    head = per_policy[names[0]]
+    return {"headline_policy": names[0], "eta": eta,
+            "headline": {**head, "max_task_gap": max(abs(t["imagined_success"] - t["real_success"]) for t in tasks.values())},
+            "by_context": {kind: verdict_metrics([r for r in rows if r["context_kind"] == kind], eta)
+                           for kind in ("init", "episode")},
+            "evaluator": evaluator_metrics(per_policy, "closed_loop_success"),
+            "evaluator_paired": evaluator_metrics(per_policy, "real_success"),
+            "real_episodes": sum(r["real_episodes"] for r in results.values() if r),
+            "imagined_rollouts": sum(r["imagined_rollouts"] for r in results.values() if r),
+            "per_policy": per_policy, "per_task": tasks, "frames": frames}
+
+
+def write_outputs(stage, summary: dict, results: dict, work: Path) -> None:
+    out = stage.manifest.root / "evaluate_imagination" / Path(work).name
+    out.mkdir(parents=True, exist_ok=True)
+    for name, data in (("fidelity.json", summary), ("pairs.json", results)):
+        tmp = out / (name + ".tmp")
+        tmp.write_text(json.dumps(data, indent=1, default=str))
+        stage.add_output(tmp.replace(out / name), kind="report")
+    stage.add_output(plot_policies(summary, out / "imagined_vs_real.png"), kind="plot")
+    for gif in sorted((Path(work) / "videos").glob("*.gif")):
+        stage.add_output(gif, kind="video")
+
+
+def plot_policies(summary: dict, path: Path) -> Path:
+    """Imagined against real success per policy: on the diagonal, the world model ranks and
+    scores policies as the real simulator does."""
+    fig, ax = figure(figsize=(5, 5))
+    for name, m in summary["per_policy"].items():
+        for key, marker, label in (("closed_loop_success", "o", "closed loop"), ("real_success", "x", "paired replay")):
+            if m.get(key) is not None:
+                ax.scatter(m[key], m["imagined_success"], marker=marker, label=label)
+                ax.annotate(name, (m[key], m["imagined_success"]), fontsize=7)
+    handles = {h.get_label(): h for h in ax.collections}
+    ax.legend(handles.values(), handles.keys(), loc="upper left")
+    ax.plot([0, 1], [0, 1], "k--", lw=0.8)
+    ax.set(xlim=(-0.02, 1.02), ylim=(-0.02, 1.02), xlabel="real success", ylabel="imagined success",
+           title="the world model as a policy evaluator")
+    return save_figure(fig, path)
+
+
+def _pct(x) -> str:
+    return "" if x is None or (isinstance(x, float) and np.isnan(x)) else f"{100 * x:.1f} %"
+
+
+def _num(x, digits: int = 3) -> str:
+    return "" if x is None or (isinstance(x, float) and np.isnan(x)) else f"{x:.{digits}f}"
+
+
+def _mark(key: str, value) -> str:
+    op, target = TARGETS[key]
+    if value is None or (isinstance(value, float) and np.isnan(value)):
+        return ""
+    return " (met)" if (value >= target if op == ">=" else value <= target) else f" (target {op} {target:g})"
+
+
+def section(ctx: ReportContext, limit: int = 8) -> list[str]:
+    """One row per recent run (the before/after table of the levers), then the newest run's
+    policies, tasks, frames along the pairs, plot and GIFs."""
+    runs = ctx.find("evaluate_imagination")[-limit:]
+    if not runs:
+        return []
+    rows = []
+    for r in runs:
+        s = ctx.report_json(r, "fidelity.json")
+        if not s:
+            continue
+        h, ev = s["headline"], s["evaluator"]
+        rows.append([r.tags.get("worldsim"), r.tags.get("reflector"), _num(s["eta"], 2), r.tags.get("sampling_steps") or "default",
+                     s["headline_policy"], h["rollouts"], _num(h["auroc"]) + _mark("auroc", h["auroc"]),
+                     _num(h["f1"]) + _mark("f1", h["f1"]), _pct(h["hack_rate"]) + _mark("hack_rate", h["hack_rate"]),
+                     f"{_pct(h['imagined_success'])} / {_pct(h['real_success'])}",
+                     _pct(h["max_task_gap"]) + _mark("max_task_gap", h["max_task_gap"]), _num(h["timing_error_median"], 0),
+                     _num(h["real_frames_f1"]), f"{_num(ev['spearman'], 2)}{_mark('spearman', ev['spearman'])} / "
+                     f"{_pct(ev['mae'])} ({ev['policies']})", s["real_episodes"]])
+    lines = ["The imagined verdict (world model + reflector) against the real outcome of the same actions "
+             "(`make fidelity`; contexts no model trained on). AUROC: the imagined reward against real success; "
+             "F1 and hack rate (imagined successes that fail in reality) at eta; real-frame F1: the reflector on the "
+             "real frames of the same actions (low: the reflector is wrong; high while F1 is low: the world model is); "
+             "evaluator: imagined against closed-loop real success over the policies.", "",
+             *markdown_table(["world model", "reflector", "eta", "sampler steps", "policy", "pairs", "AUROC",
+                              "F1", "hack rate", "imagined / real success", "max task gap", "timing error (median steps)",
+                              "real-frame F1", "evaluator Spearman / MAE (policies)", "real episodes"], rows)]
+    newest = runs[-1]
+    s = ctx.report_json(newest, "fidelity.json")
+    if s:
+        lines += ["", f"Newest run (`{newest.id}`), per policy:", "", *markdown_table(
+            ["policy", "imagined success", "paired real success", "closed-loop real success", "AUROC", "F1", "hack rate",
+             "real episodes"],
+            [[n, _pct(m["imagined_success"]), _pct(m["real_success"]), _pct(m["closed_loop_success"]), _num(m["auroc"]),
+              _num(m["f1"]), _pct(m["hack_rate"]), m["real_episodes"]] for n, m in s["per_policy"].items()])]
+        lines += ["", "By context kind and task (headline policy):", "", *markdown_table(
+            ["contexts", "pairs", "imagined success", "real success", "AUROC", "F1"],
+            [[k, m["rollouts"], _pct(m.get("imagined_success")), _pct(m.get("real_success")), _num(m.get("auroc")),
+              _num(m.get("f1"))] for k, m in s["by_context"].items()]
+            + [[f"task {t}", m["rollouts"], _pct(m["imagined_success"]), _pct(m["real_success"]), "", ""]
+               for t, m in s["per_task"].items()])]
+        lines += ["", "Imagined against real frames along the pairs (copy: the context frame):", "", *markdown_table(
+            ["steps", "pairs", "PSNR model / copy", "SSIM model / copy"],
+            [[h, f["n"], f"{_num(f['model_psnr'], 2)} / {_num(f['copy_psnr'], 2)}",
+              f"{_num(f['model_ssim'])} / {_num(f['copy_ssim'])}"] for h, f in s["frames"].items()])]
+        for art in newest.files("plot"):
+            plot = ctx.copy(art.path, "fidelity_policies.png", folder=".")
+            lines += ["", f"![imagined vs real success per policy]({plot})"] if plot else []
+        gifs = [g for g in (ctx.copy(a.path, f"fidelity_{Path(a.path).name}") for a in newest.files("video")) if g]
+        if gifs:
+            lines += ["", "Imagined | real, the same actions: " + " ".join(f"![pair]({g})" for g in gifs)]
+    return titled("Verdict fidelity: imagined against real", lines)

@@ -1,0 +1,110 @@
+"""Stage `evaluate_imagination`: does the imagined environment judge like the real one?
+
+Each policy (at each Laplace noise scale) acts in imagination exactly as in post_train_loop
+(the same imagined env, Laplace-sampled actions, reflector termination) from contexts no model
+trained on; the actions of every imagined rollout are then executed open loop in the real
+simulator from the same state (`envs.replay`), and optionally the policy also acts closed loop
+there. The agreement of the imagined verdict with the real outcome of the same actions (AUROC,
+F1, hack rate, timing, per task), the frames along the pairs and the world model as a policy
+evaluator (Spearman, MAE over the policies) go into the manifest and the experiment report.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig
+
+from stages.evaluate_imagination.contexts import build_contexts, held_out_by_both
+from stages.evaluate_imagination.evaluation import Variant, pair_variant, summarise, write_outputs
+from stages.report import write_report
+from worldenv_core.imagination.env import build_imagined_env
+from worldenv_core.manifest import StageRun, config_hash
+from worldenv_core.models.text import InstructionEncoder
+from worldenv_core.rl.termination import check_eta, reflector_eta
+from worldenv_core.stage import (POLICY_SOURCES, ConfigError, positive_int, require_task, resolve_checkpoint, resolved,
+                                 start, task_contract, work_dir)
+from worldenv_core.training import pick_device
+
+log = logging.getLogger("worldenv.evaluate_imagination")
+
+
+def validate(cfg: DictConfig) -> None:
+    require_task(cfg)
+    for key in ("rollouts", "horizon"):
+        positive_int(cfg, key)
+    for key in ("closed_loop_rollouts", "gifs", "contexts.init_states", "contexts.episodes_per_task",
+                "contexts.episode_frames"):
+        positive_int(cfg, key, allow_zero=True)
+    if cfg.contexts.init_states > 50:
+        raise ConfigError(f"contexts.init_states is at most 50 (the benchmark has 50 per task), got {cfg.contexts.init_states}")
+    if not cfg.contexts.init_states and not (cfg.contexts.episodes_per_task and cfg.contexts.episode_frames):
+        raise ConfigError("no contexts: set contexts.init_states or contexts.episodes_per_task and contexts.episode_frames")
+    if not cfg.policies or not cfg.noise_scales:
+        raise ConfigError("policies and noise_scales must each name at least one")
+    if any(not isinstance(n, (int, float)) or isinstance(n, bool) or n <= 0 for n in cfg.noise_scales):
+        raise ConfigError(f"noise_scales must be positive numbers, got {list(cfg.noise_scales)}")
+    bad = [h for h in cfg.horizons if not isinstance(h, int) or h <= 0 or h % cfg.task.chunk]
+    if bad:
+        raise ConfigError(f"horizons must be positive multiples of the chunk ({cfg.task.chunk}): {bad}")
+    try:
+        if cfg.eta is not None:
+            check_eta(cfg.eta)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+
+
+def run(cfg: DictConfig) -> dict:
+    manifest = start(cfg, validate)
+    contract, device = task_contract(cfg), pick_device(cfg.device)
+    config = resolved(cfg)
+    tags = {"task": contract.name, "scale": cfg.scale.name}
+    with StageRun(manifest, "evaluate_imagination", tags, config) as stage:
+        worldsim = resolve_checkpoint(stage, cfg.worldsim_from, "train_worldsim", contract.name, cfg.scale.name)
+        reflector = resolve_checkpoint(stage, cfg.reflector_from, "train_reflector", contract.name, cfg.scale.name)
+        eta = reflector_eta(reflector, cfg.eta)
+        variants = [Variant(name=f"{ref}@{float(n):g}", path=resolve_checkpoint(
+                        stage, None if ref in POLICY_SOURCES else ref, POLICY_SOURCES.get(ref, "train_policy"),
+                        contract.name, cfg.scale.name), noise_scale=float(n))
+                    for ref in cfg.policies for n in cfg.noise_scales]
+        stage.record.tags.update({"eta": eta, "sampling_steps": cfg.sampling_steps,
+                                  "worldsim": Path(worldsim).parent.name, "reflector": Path(reflector).parent.name})
+        encoder = InstructionEncoder()
+        encode = lambda s: encoder(s).to(device)  # noqa: E731
+        env, camera = build_imagined_env(worldsim, reflector, eta, encode, cfg.horizon, cfg.sampling_steps, device, contract)
+        if camera != contract.cameras[0]:
+            raise ConfigError(f"the world model imagines {camera!r} but task {contract.name} renders {contract.cameras[0]!r} first")
+        held = held_out_by_both(manifest, stage, contract, cfg.scale.name, worldsim, reflector)
+        contexts = build_contexts(cfg, contract, held)
+        log.info("paired replay of %d policies x %d contexts (%d init states, %d mid-episode) x %d rollouts; eta %.2f; "
+                 "world model %s, reflector %s", len(variants), len(contexts), sum(c.kind == "init" for c in contexts),
+                 sum(c.kind == "episode" for c in contexts), cfg.rollouts, eta, worldsim, reflector)
+        # Each policy's pairs are kept as they finish: a killed run re-run skips the policies done.
+        work = work_dir(cfg.experiment_dir, "evaluate_imagination",
+                        {k: v for k, v in config.items() if k not in ("policies", "noise_scales", "progress", "workers",
+                                                                        "launcher", "ray_address", "gifs")},
+                        stage.work_inputs())
+        stage.lock(work)
+        results = {}
+        for i, v in enumerate(variants):
+            path = work / f"{config_hash({'policy': v.path, 'noise': v.noise_scale})}.json"
+            if path.exists():
+                results[v.name] = json.loads(path.read_text())
+                log.info("%s: paired earlier (%s)", v.name, path)
+                continue
+            torch.manual_seed(cfg.seed)
+            results[v.name] = pair_variant(cfg, contract, v, env, contexts, encode, reflector, eta, device,
+                                           gifs=cfg.gifs if i == 0 else 0, out=work)
+            tmp = path.with_suffix(".json.tmp")
+            tmp.write_text(json.dumps(results[v.name]))
+            tmp.replace(path)
+        summary = summarise(results, [v.name for v in variants], eta, list(cfg.horizons))
+        write_outputs(stage, summary, results, work)
+        stage.metrics.update({k: v for k, v in summary.items() if k not in ("per_policy", "per_task", "frames")})
+        log.info("verdict fidelity of %s: %s", variants[0].name, json.dumps(summary["headline"]))
+    report = write_report(manifest.root, contract.name)
+    log.info("experiment report: %s", report)
+    return summary

@@ -1,0 +1,72 @@
+"""evaluate_imagination on the tiny task: the SFT policy at two noise scales in imagination, each
+imagined rollout replayed in the real simulator, the verdict table, the accounting, resume and
+bad settings."""
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stages.evaluate_imagination.contexts import mid_episode_frames
+from stages.evaluate_imagination.run import run as evaluate_imagination
+from tests.stages.conftest import stage_cfg
+from worldenv_core.manifest import Manifest
+from worldenv_core.stage import ConfigError
+
+pytestmark = [pytest.mark.sim, pytest.mark.slow]
+PAIRED = ["horizon=16", "contexts.init_states=1", "contexts.episodes_per_task=1", "contexts.episode_frames=1",
+          "rollouts=2", "closed_loop_rollouts=1", "noise_scales=[1.0,3.0]", "horizons=[8,16]", "gifs=1", "workers=1",
+          "progress=false"]
+
+
+@pytest.fixture(scope="module")
+def paired(tiny_models):
+    return tiny_models, evaluate_imagination(stage_cfg("evaluate_imagination", tiny_models, *PAIRED))
+
+
+def test_every_imagined_rollout_is_paired_with_its_real_replay(paired):
+    exp, summary = paired
+    rec = Manifest(exp).latest("evaluate_imagination", task="tiny")
+    assert {Manifest(exp).get(i).stage for i in rec.inputs} >= {"train_policy", "train_worldsim", "train_reflector"}
+    # 2 contexts (init state 0, a frame of the held-out demo) x 2 rollouts, for each of 2 noise scales
+    assert list(summary["per_policy"]) == ["sft@1", "sft@3"] and summary["headline_policy"] == "sft@1"
+    assert summary["headline"]["rollouts"] == 4 and summary["imagined_rollouts"] == 8
+    assert summary["real_episodes"] == 8 + 2 * 2 == rec.metrics["real_episodes"]  # replays + closed loop
+    pairs = json.loads(next(Path(exp, a.path) for a in rec.files("report") if a.path.endswith("pairs.json")).read_text())
+    rows = pairs["sft@1"]["rows"]
+    assert [r["context_kind"] for r in rows] == ["init", "init", "episode", "episode"]
+    for r in rows:
+        assert r["real_error"] is None and 0 < r["imagined_steps"] <= 16
+        assert isinstance(r["real_success"], bool) and 0.0 <= r["real_reward"] <= 1.0
+        assert set(r["frames"]) <= {"8", "16"} and all(len(v) == 2 for v in r["frames"].values())
+    assert summary["frames"][8]["n"] == 4 and np.isfinite(summary["frames"][8]["model_ssim"])
+    assert 0.0 <= summary["headline"]["imagined_success"] <= 1.0 and summary["evaluator"]["policies"] == 2
+    assert len(rec.files("video")) == 1 and len(rec.files("plot")) == 1
+
+
+def test_the_report_shows_the_verdict_table_and_the_real_episode_accounting(paired):
+    exp, _ = paired
+    report = (Path(exp) / "report" / "report.md").read_text()
+    section = report.split("## Verdict fidelity: imagined against real")[1].split("\n## ")[0]
+    assert "sft@3" in section and "fidelity_policies.png" in section and "![pair](videos/fidelity_" in section
+    accounting = report.split("## Real-simulator episodes")[1].split("\n## ")[0]
+    assert "| evaluate_imagination |" in accounting and "| collect | scale=tiny, source=expert | training data: expert |" in accounting
+    assert "Total: training data: " in accounting and "evaluation: 12" in accounting
+
+
+def test_a_rerun_reuses_the_pairs_and_bad_settings_fail_first(paired):
+    exp, summary = paired
+    again = evaluate_imagination(stage_cfg("evaluate_imagination", exp, *PAIRED, "noise_scales=[1.0]"))
+    assert json.dumps(again["headline"]) == json.dumps(summary["headline"])  # sft@1's pairs were kept
+    for overrides, match in ((["noise_scales=[0]"], "noise_scales must be positive"),
+                             (["horizons=[5]"], "multiples of the chunk"), (["eta=2"], "eta"),
+                             (["contexts.init_states=0", "contexts.episodes_per_task=0"], "no contexts")):
+        with pytest.raises(ConfigError, match=match):
+            evaluate_imagination(stage_cfg("evaluate_imagination", exp, *PAIRED, *overrides))
+
+
+def test_mid_episode_frames_lie_before_the_first_success():
+    success = np.zeros(31, bool)
+    success[21:] = True
+    assert mid_episode_frames(success, 30, 2) == [7, 14]
+    assert mid_episode_frames(np.zeros(31, bool), 30, 1) == [15]

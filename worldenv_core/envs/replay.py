@@ -1,0 +1,145 @@
+"""Paired replay: the real outcome of actions chosen in imagination.
+
+Every recorded frame carries its MuJoCo state and the simulator is deterministic, so the true
+outcome of an action sequence from any context is known: put the real simulator where the
+context starts and execute exactly those actions, open loop. A context starts either at a
+benchmark init state or at frame t of a recorded episode. The controller's internal state (the
+OSC goal, the gripper's) is not part of the MuJoCo state, so setting the state of frame t alone
+makes the next step differ (measured: a joint velocity off by 1.07 from frame 40 of an expert
+episode); `restore` therefore rebuilds the episode's scene from its seed and replays its recorded
+actions up to t, which reproduces the recorded states (within 1e-6) and frames.
+
+`replay_context` is a worker job (picklable, like `envs.collection`): one context, the action
+sequences of all its imagined rollouts, and optionally closed-loop rollouts of the same policy,
+each one real episode.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from worldenv_core.contract import TaskContract
+from worldenv_core.envs.libero_env import Frame, LiberoEnv
+from worldenv_core.envs.recording import cached_env
+
+
+@dataclass(frozen=True)
+class RealStart:
+    """Where a context starts in the real simulator: a benchmark init state (`episode` None) or
+    frame `frame` of a recorded episode (its scene rebuilt from `seed`, its actions replayed)."""
+
+    task_id: int
+    init_state: int = -1  # benchmark init-state index; -1: the episode's own placement
+    seed: int = 0
+    episode: str | None = None
+    frame: int = 0
+
+    @property
+    def key(self) -> str:
+        return f"init{self.init_state}" if self.episode is None else f"{self.episode}@{self.frame}"
+
+
+class ReplayError(RuntimeError):
+    """Replaying a recorded prefix did not reproduce the recorded state."""
+
+
+def restore(env: LiberoEnv, start: RealStart, tolerance: float = 1e-3) -> Frame:
+    """Put `env` at the context's start and return that frame (no images)."""
+    if start.episode is None:
+        return env.reset(init_state=start.init_state, seed=start.seed)
+    from worldenv_core.data.mcap_io import read_episode
+
+    ep = read_episode(start.episode, cameras=[])
+    frame = env.reset(init_state=ep.meta.init_state_index if ep.meta.init_state_index >= 0 else None, seed=ep.meta.seed)
+    env.set_sim_state(ep.sim_state[0])
+    for a in ep.actions[:start.frame]:
+        frame = env.step(a)
+    if start.frame and ep.sim_state.shape[1]:
+        gap = float(np.abs(frame.sim_state - ep.sim_state[start.frame]).max())
+        if gap > tolerance:
+            raise ReplayError(f"replaying {start.episode} to frame {start.frame} ends {gap:.3g} away from the "
+                              f"recorded state (tolerance {tolerance})")
+    return frame
+
+
+def execute(env: LiberoEnv, start: RealStart, actions: np.ndarray, every: int, camera: str,
+            scorer=None, keep: frozenset[int] | None = None) -> dict:
+    """Execute `actions` (T, 7) open loop from `start`. Every `every` steps the camera is rendered
+    (what the imagined env and its reflector see); `scorer` (a reward model's incremental scorer)
+    scores those frames. Returns the oracle's flags, the first success step, the scores and the
+    rendered frames at the steps in `keep` (None: all of them)."""
+    t0 = time.perf_counter()
+    frame = restore(env, start)
+    flags, frames, scores = [frame.success], {}, []
+
+    def look(t: int) -> None:
+        img = env.render([camera])[camera]
+        if keep is None or t in keep:
+            frames[t] = img
+        if scorer is not None:
+            import torch
+
+            scorer.add(torch.from_numpy(img).permute(2, 0, 1)[None])
+            scores.append(float(scorer.score()[0]))
+
+    look(0)
+    error = None
+    try:
+        for t, a in enumerate(actions, start=1):
+            frame = env.step(a)
+            flags.append(frame.success)
+            if t % every == 0 or t == len(actions):
+                look(t)
+    except Exception as e:  # noqa: BLE001 - a physics failure is a failed replay, not a dead worker
+        error = f"{type(e).__name__}: {e}"
+    hits = np.flatnonzero(flags)
+    return {"success": bool(len(hits)) and error is None, "first_success": int(hits[0]) if len(hits) else None,
+            "success_at_end": bool(flags[-1]) and error is None, "steps": len(flags) - 1, "scores": scores,
+            "frames": frames, "error": error, "seconds": time.perf_counter() - t0}
+
+
+@dataclass(frozen=True)
+class PairedReplayJob:
+    contract: TaskContract
+    start: RealStart
+    actions: tuple  # one (T_i, 7) float32 array per imagined rollout
+    keep: tuple  # per rollout, the steps whose real frames come back (None: every checked step)
+    reflector_path: str | None = None  # score the real frames with this reflector
+    # closed loop: the same policy acting on real frames from the same start, Laplace noise seeded per rollout
+    policy_path: str | None = None
+    closed_loop_seeds: tuple = ()
+    noise_scale: float = 1.0
+    horizon: int = 0
+
+
+def replay_context(job: PairedReplayJob) -> dict:
+    """The real outcome of every imagined rollout of one context (and, with `policy_path`, of
+    closed-loop rollouts of the policy from there). Each replay or rollout is one real episode."""
+    from worldenv_core.envs.collection import cached_reflector, cached_runner
+    from worldenv_core.envs.recording import policy_episode
+
+    c = job.contract
+    camera = c.cameras[0]
+    env = cached_env(c.suite, job.start.task_id, c.cameras, c.image_size, render=True)
+    reflector = cached_reflector(job.reflector_path, c) if job.reflector_path else None
+    encoder = None
+    if reflector is not None:
+        from worldenv_core.models.text import InstructionEncoder
+
+        encoder = InstructionEncoder()
+    replays = []
+    for actions, keep in zip(job.actions, job.keep):
+        scorer = reflector.scorer([env.instruction], encoder) if reflector is not None else None
+        replays.append(execute(env, job.start, np.asarray(actions), c.chunk, camera, scorer,
+                               None if keep is None else frozenset(keep)))
+    closed = []
+    if job.policy_path and job.closed_loop_seeds:
+        runner = cached_runner(job.policy_path, True, job.noise_scale, c)
+        for seed in job.closed_loop_seeds:
+            runner.generator.manual_seed(int(seed))
+            traj = policy_episode(env, runner, None, 0, job.horizon, start=lambda: restore(env, job.start))
+            closed.append({"success": traj.reached_success, "steps": traj.length, "error": traj.error})
+    return {"start": job.start, "replays": replays, "closed_loop": closed}
