@@ -14,8 +14,8 @@ import torch
 from stages.evaluate_imagination.contexts import PairedContext
 from worldenv_core.contract import TaskContract
 from worldenv_core.envs.replay import PairedReplayJob, replay_context
-from worldenv_core.imagination.verdict import (evaluator_metrics, frame_metrics, imagine, pair, per_task,
-                                               verdict_metrics)
+from worldenv_core.imagination.verdict import (evaluator_metrics, frame_metrics, imagine, judge, pair, per_task,
+                                               replay_eta, verdict_metrics)
 from worldenv_core.models.checkpoint import load_checkpoint
 from worldenv_core.parallel import run_jobs
 from worldenv_core.report import ReportContext, markdown_table, titled
@@ -64,7 +64,7 @@ def pair_variant(cfg, contract: TaskContract, v: Variant, env, contexts: list[Pa
         closed += [c["success"] for c in res["closed_loop"]]
         for k, rep in enumerate(res["replays"]):
             run = runs[i * n + k]
-            row = pair(run, rep, eta, pc.start.task_id, pc.kind, v.name)
+            row = pair(run, rep, pc.start.task_id, pc.kind, v.name, contract.chunk)
             row["start"] = pc.start.key
             row["frames"] = {str(h): m for h, m in frame_metrics(run.frames, rep["frames"]).items() if h in cfg.horizons}
             row["copy"] = {str(h): m for h, m in frame_metrics({s: rep["frames"][0] for s in rep["frames"]},
@@ -72,7 +72,9 @@ def pair_variant(cfg, contract: TaskContract, v: Variant, env, contexts: list[Pa
             rows.append(row)
             if i * n + k in full:
                 steps = sorted(set(run.frames) & set(rep["frames"]))
-                verdict = f"imagined-{'success' if run.success else 'failure'}_real-{'success' if rep['success'] else 'failure'}"
+                j = judge(row, eta)
+                verdict = (f"imagined-{'success' if j['imagined_success'] else 'failure'}_"
+                           f"real-{'success' if j['real_success'] else 'failure'}")
                 montage_video([np.stack([run.frames[s] for s in steps]), np.stack([rep["frames"][s] for s in steps])],
                               out / "videos" / f"{v.name.replace('/', '_')}_ctx{i:03d}_task{pc.start.task_id:02d}_{verdict}.gif",
                               max_frames=len(steps), fps=4)
@@ -90,7 +92,7 @@ def summarise(results: dict, names: list[str], eta: float, horizons: list[int]) 
         per_policy[name] = {**m, "closed_loop_success": float(np.mean(closed)) if closed else None,
                             "real_episodes": results[name]["real_episodes"]}
     rows = results[names[0]]["rows"]
-    tasks = per_task(rows)
+    tasks = per_task(rows, eta)
     frames = {}
     for h in horizons:
         got = [r for r in rows if str(h) in r["frames"]]
@@ -102,6 +104,7 @@ def summarise(results: dict, names: list[str], eta: float, horizons: list[int]) 
             "headline": {**head, "max_task_gap": max(abs(t["imagined_success"] - t["real_success"]) for t in tasks.values())},
             "by_context": {kind: verdict_metrics([r for r in rows if r["context_kind"] == kind], eta)
                            for kind in ("init", "episode")},
+            "replay_eta": replay_eta(rows),  # the lever: eta chosen on replays (2-fold over contexts)
             "evaluator": evaluator_metrics(per_policy, "closed_loop_success"),
             "evaluator_paired": evaluator_metrics(per_policy, "real_success"),
             "real_episodes": sum(r["real_episodes"] for r in results.values() if r),
@@ -153,6 +156,12 @@ def _mark(key: str, value) -> str:
     return " (met)" if (value >= target if op == ">=" else value <= target) else f" (target {op} {target:g})"
 
 
+def _replay_eta(r: dict) -> str:
+    if not r.get("etas"):
+        return ""
+    return f"{_num(r['f1'])} / {_pct(r['hack_rate'])} ({', '.join(f'{e:g}' for e in r['etas'])})"
+
+
 def section(ctx: ReportContext, limit: int = 8) -> list[str]:
     """One row per recent run (the before/after table of the levers), then the newest run's
     policies, tasks, frames along the pairs, plot and GIFs."""
@@ -170,16 +179,18 @@ def section(ctx: ReportContext, limit: int = 8) -> list[str]:
                      _num(h["f1"]) + _mark("f1", h["f1"]), _pct(h["hack_rate"]) + _mark("hack_rate", h["hack_rate"]),
                      f"{_pct(h['imagined_success'])} / {_pct(h['real_success'])}",
                      _pct(h["max_task_gap"]) + _mark("max_task_gap", h["max_task_gap"]), _num(h["timing_error_median"], 0),
-                     _num(h["real_frames_f1"]), f"{_num(ev['spearman'], 2)}{_mark('spearman', ev['spearman'])} / "
-                     f"{_pct(ev['mae'])} ({ev['policies']})", s["real_episodes"]])
+                     _num(h["real_frames_f1"]), _replay_eta(s.get("replay_eta", {})),
+                     f"{_num(ev['spearman'], 2)}{_mark('spearman', ev['spearman'])} / {_pct(ev['mae'])} ({ev['policies']})",
+                     s["real_episodes"]])
     lines = ["The imagined verdict (world model + reflector) against the real outcome of the same actions "
              "(`make fidelity`; contexts no model trained on). AUROC: the imagined reward against real success; "
              "F1 and hack rate (imagined successes that fail in reality) at eta; real-frame F1: the reflector on the "
              "real frames of the same actions (low: the reflector is wrong; high while F1 is low: the world model is); "
+             "eta chosen on replays: each half of the contexts judged at the eta with the best F1 on the other half's pairs; "
              "evaluator: imagined against closed-loop real success over the policies.", "",
              *markdown_table(["world model", "reflector", "eta", "sampler steps", "policy", "pairs", "AUROC",
                               "F1", "hack rate", "imagined / real success", "max task gap", "timing error (median steps)",
-                              "real-frame F1", "evaluator Spearman / MAE (policies)", "real episodes"], rows)]
+                              "real-frame F1", "eta chosen on replays: F1 / hack rate (etas)", "evaluator Spearman / MAE (policies)", "real episodes"], rows)]
     newest = runs[-1]
     s = ctx.report_json(newest, "fidelity.json")
     if s:

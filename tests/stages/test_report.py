@@ -65,10 +65,12 @@ def _experiment(root):
             s.metrics["real_episodes"] = 2
     with StageRun(m, "evaluate_imagination", {**TAGS, "eta": 0.5, "sampling_steps": None, "worldsim": "w1",
                                               "reflector": "r1"}, {}) as s:
-        row = {"task_id": 0, "context_kind": "init", "imagined_steps": 16, "real_first_success": 8, "real_reward": 0.9,
+        row = {"task_id": 0, "context_kind": "init", "chunk": 8, "steps": 16, "real_error": None,
                "frames": {"8": [20.0, 0.6]}, "copy": {"8": [18.0, 0.5]}}
-        rows = [{**row, "imagined_success": i < 2, "imagined_reward": 0.9 - 0.2 * i, "real_success": i in (0, 2)}
-                for i in range(4)]
+        # a hit (stops at 8, real success at 8), a hack, a miss, an agreed failure
+        verdicts = (([0, 0.9, 0.9], 8), ([0, 0.7, 0.7], None), ([0, 0.3, 0.3], 12), ([0, 0.1, 0.1], None))
+        rows = [{**row, "context": i, "imagined_scores": sc, "real_scores": [0, 0.2, 0.2], "real_first_success": first}
+                for i, (sc, first) in enumerate(verdicts)]
         results = {"sft@1": {"rows": rows, "closed_loop": [True, False], "imagined_rollouts": 4, "real_episodes": 6},
                    "sft@3": {"rows": rows[:2], "closed_loop": [False, False], "imagined_rollouts": 2, "real_episodes": 4}}
         summary = evaluate_imagination.summarise(results, ["sft@1", "sft@3"], 0.5, [8])
@@ -95,7 +97,7 @@ def test_each_stage_renders_its_own_section(tmp_path):
     assert "| policy | tiny | 3 | 120 | 33 % |" in text
     text = "\n".join(evaluate_imagination.section(ctx))  # pairs: hit, hack, miss, agreed failure
     assert "| w1 | r1 | 0.50 | default | sft@1 | 4 | 0.750 (target >= 0.9) | 0.500 (target >= 0.8) | 50.0 % (target <= 0.1) |" in text
-    assert "| 50.0 % / 50.0 % | 0.0 % (met) | 8 |" in text and "| sft@3 | 100.0 % | 50.0 % | 0.0 % |" in text
+    assert "| 50.0 % / 50.0 % | 0.0 % (met) | 0 | 0.000 |" in text and "| sft@3 | 100.0 % | 50.0 % | 0.0 % |" in text
 
 
 def test_the_report_is_the_sections_in_order_then_wall_time(tmp_path):

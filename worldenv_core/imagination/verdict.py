@@ -1,10 +1,12 @@
 """Verdict fidelity: does the imagined environment judge a rollout as the real simulator would?
 
 `imagine` runs a policy in the imagined environment exactly as LOOP does (`collect_rollouts`:
-the same env, Laplace-sampled actions, reflector termination) and keeps, per rollout, the
-actions it executed, its imagined verdict (success = stopped by R > eta, the step, R at the
-stop) and the imagined frames at a few steps. `envs.replay` executes those actions in the real
-simulator; `pair` joins both sides, and the functions below measure the agreement:
+the same env, Laplace-sampled actions), watched to the horizon, and keeps per rollout the actions
+it executed, the reflector's score after every chunk and the imagined frames at a few steps.
+`envs.replay` executes those actions in the real simulator; `pair` joins both sides; `judge`
+reads off the verdicts at any eta (imagination stops at the first check with R > eta, exactly as
+in LOOP; the real outcome is the oracle firing by that step); the functions below measure the
+agreement:
 
 * `verdict_metrics`: AUROC of the imagined reward against the real outcome; precision, recall
   and F1 of imagined success at eta; the hack rate (imagined successes that fail in reality);
@@ -28,94 +30,108 @@ from worldenv_core.metrics import binary_metrics, psnr, spearman, ssim
 
 @dataclass
 class ImaginedRun:
-    """One imagined rollout: what the real simulator needs to replay it, and what imagination said."""
+    """One imagined rollout, watched to the horizon: what the real simulator needs to replay it,
+    and the reflector's score at every chunk boundary (the verdict at any eta is read off them)."""
 
     context: int
-    actions: np.ndarray  # (t_end, 7) float32, simulator units
-    success: bool  # stopped by the reflector (R > eta)
-    reward: float  # R at t_end: the reward LOOP would use
-    steps: int  # t_end
+    actions: np.ndarray  # (steps, 7) float32, simulator units
+    scores: list[float]  # R at steps 0, K, 2K, ... (the check after each chunk)
+    steps: int  # the horizon, rounded up to a chunk
     frames: dict[int, np.ndarray] = field(default_factory=dict)  # step -> (H, W, 3) uint8, chunk boundaries
 
 
 class _Keeper:
-    """A `collect_rollouts` observer: per rollout, the actions it executed while live and its
-    imagined frames at the steps in `keep` (every chunk boundary for rollouts in `full`)."""
+    """A `collect_rollouts` observer: per rollout, the actions it executed, the reflector's score
+    after each chunk, and its imagined frames at the steps in `keep` (every chunk boundary for
+    rollouts in `full`)."""
 
     def __init__(self, keep: set[int], full: set[int]):
         self.keep, self.full = keep, full
         self.actions: list[list[np.ndarray]] = []
+        self.scores: list[list[float]] = []
         self.frames: list[dict[int, np.ndarray]] = []
-        self.done: torch.Tensor | None = None
 
     def on_reset(self, state: StepResult) -> None:
         b = len(state.done)
         self.actions, self.frames = [[] for _ in range(b)], [{} for _ in range(b)]
-        self._keep_frames(state, torch.ones(b, dtype=torch.bool))
-        self.done = state.done.cpu().clone()
+        self.scores = [[s] for s in state.reward.float().cpu().tolist()]
+        self._keep_frames(state)
 
     def on_step(self, actions: torch.Tensor, mu, beta, state: StepResult) -> None:
-        live = ~self.done
-        acts = actions.float().cpu().numpy()
-        for r in np.flatnonzero(live.numpy()):
+        acts, scores = actions.float().cpu().numpy(), state.reward.float().cpu().tolist()
+        for r in range(len(acts)):
             self.actions[r].append(acts[r])
-        self._keep_frames(state, live)
-        self.done = state.done.cpu().clone()
+            self.scores[r].append(scores[r])
+        self._keep_frames(state)
 
-    def _keep_frames(self, state: StepResult, live: torch.Tensor) -> None:
-        t = state.t.cpu()
-        for r in np.flatnonzero(live.numpy()):
-            if int(t[r]) in self.keep or r in self.full:
-                self.frames[r][int(t[r])] = state.frames[r].permute(1, 2, 0).cpu().numpy()
+    def _keep_frames(self, state: StepResult) -> None:
+        t = int(state.t[0])  # watched to the horizon: every rollout is at the same step
+        for r in range(len(state.t)):
+            if t in self.keep or r in self.full:
+                self.frames[r][t] = state.frames[r].permute(1, 2, 0).cpu().numpy()
 
 
 @torch.no_grad()
 def imagine(policy, env: ImaginedEnv, contexts: list[Context], n_rollouts: int, encoder, generator: torch.Generator,
             noise_scale: float = 1.0, keep_steps=(), full_rollouts=()) -> list[ImaginedRun]:
-    """`n_rollouts` imagined rollouts per context (context-major, as LOOP draws them). Frames are
-    kept at `keep_steps` (multiples of the chunk) and at every chunk boundary of the rollouts
-    whose index is in `full_rollouts` (side-by-side videos)."""
+    """`n_rollouts` imagined rollouts per context (context-major, as LOOP draws them), watched to
+    the horizon: the env's threshold is lifted while they run, so the rollout that stopping at
+    any eta would give is this one cut at its first check above eta (the policy's noise and the
+    world model's draws do not depend on which rollouts are done). Frames are kept at
+    `keep_steps` (multiples of the chunk) and at every chunk boundary of the rollouts whose index
+    is in `full_rollouts` (side-by-side videos)."""
     from worldenv_core.rl.loop import collect_rollouts
 
     keeper = _Keeper(set(int(s) for s in keep_steps), set(int(r) for r in full_rollouts))
-    batch = collect_rollouts(policy, env, contexts, n_rollouts, encoder, generator=generator, observer=keeper,
-                             noise_scale=noise_scale)
-    runs = []
-    for r in range(len(contexts) * n_rollouts):
-        steps = int(batch.t_end[r])
-        acts = np.concatenate(keeper.actions[r])[:steps] if keeper.actions[r] else np.zeros((0, 7), np.float32)
-        runs.append(ImaginedRun(context=r // n_rollouts, actions=acts.astype(np.float32),
-                                success=bool(batch.by_reflector[r]), reward=float(batch.rewards[r]), steps=steps,
-                                frames=keeper.frames[r]))
-    return runs
+    eta, env.eta = env.eta, 1.0  # R is a probability: never above 1, so nothing stops before the horizon
+    try:
+        batch = collect_rollouts(policy, env, contexts, n_rollouts, encoder, generator=generator, observer=keeper,
+                                 noise_scale=noise_scale)
+    finally:
+        env.eta = eta
+    return [ImaginedRun(context=r // n_rollouts, actions=np.concatenate(keeper.actions[r]).astype(np.float32),
+                        scores=keeper.scores[r], steps=int(batch.t_end[r]), frames=keeper.frames[r])
+            for r in range(len(contexts) * n_rollouts)]
 
 
-def pair(run: ImaginedRun, real: dict, eta: float, task_id: int, context_kind: str, policy: str) -> dict:
-    """One row: the imagined verdict beside the real outcome of the same actions (`envs.replay.execute`)."""
-    real_scores = real["scores"]
-    stop = next((i for i, s in enumerate(real_scores) if s > eta), None)
+def pair(run: ImaginedRun, real: dict, task_id: int, context_kind: str, policy: str, chunk: int) -> dict:
+    """One row: the imagined rollout's scores beside the real outcome of its actions
+    (`envs.replay.execute`, run to the same horizon). Eta-free: `judge` reads the verdicts."""
     return {"policy": policy, "task_id": task_id, "context": run.context, "context_kind": context_kind,
-            "imagined_success": run.success, "imagined_reward": run.reward, "imagined_steps": run.steps,
-            "real_success": real["success"], "real_first_success": real["first_success"],
-            "real_success_at_end": real["success_at_end"], "real_error": real["error"],
-            # the reflector on the real frames of the same actions: R at the last one, and whether it would stop
-            "real_reward": real_scores[-1] if real_scores else float("nan"),
-            "real_reflector_success": stop is not None}
+            "chunk": chunk, "steps": run.steps, "imagined_scores": [round(s, 5) for s in run.scores],
+            "real_scores": [round(s, 5) for s in real["scores"]], "real_first_success": real["first_success"],
+            "real_error": real["error"]}
+
+
+def judge(row: dict, eta: float) -> dict:
+    """The verdicts at `eta`: imagination stops at the first check after a chunk with R > eta (as
+    `ImaginedEnv` does), else at the horizon; imagined success = it stopped; the real outcome
+    of the same actions = the oracle fired by that step; the reflector on the real frames is
+    asked at the same check."""
+    scores, chunk = row["imagined_scores"], row["chunk"]
+    k = next((i for i in range(1, len(scores)) if scores[i] > eta), None)
+    stop = row["steps"] if k is None else min(k * chunk, row["steps"])
+    first = row["real_first_success"]
+    real = row["real_scores"]
+    at = len(scores) - 1 if k is None else k
+    return {"imagined_success": k is not None, "imagined_reward": scores[at], "imagined_steps": stop,
+            "real_success": row["real_error"] is None and first is not None and first <= stop,
+            "real_first_success": first, "real_reward": real[min(at, len(real) - 1)] if real else float("nan")}
 
 
 def verdict_metrics(rows: list[dict], eta: float) -> dict:
-    """How well the imagined verdict predicts the real outcome of the same actions."""
+    """How well the imagined verdict at `eta` predicts the real outcome of the same actions."""
     if not rows:
         return {"rollouts": 0}
-    real = np.array([r["real_success"] for r in rows], dtype=bool)
-    imagined = binary_metrics([r["imagined_reward"] for r in rows], real, eta)
-    on_real = binary_metrics([r["real_reward"] for r in rows], real, eta)
-    timing = [r["imagined_steps"] - r["real_first_success"] for r in rows
-              if r["imagined_success"] and r["real_success"] and r["real_first_success"] is not None]
+    judged = [judge(r, eta) for r in rows]
+    real = np.array([j["real_success"] for j in judged], dtype=bool)
+    said = np.array([j["imagined_success"] for j in judged], dtype=bool)
+    imagined = binary_metrics([j["imagined_reward"] for j in judged], real, eta)
+    on_real = binary_metrics([j["real_reward"] for j in judged], real, eta)
+    timing = [j["imagined_steps"] - j["real_first_success"] for j in judged if j["imagined_success"] and j["real_success"]]
     n_imagined = imagined["tp"] + imagined["fp"]
-    return {"rollouts": len(rows), "imagined_success": float(np.mean([r["imagined_success"] for r in rows])),
-            "real_success": float(real.mean()),
-            "success_gap": float(np.mean([r["imagined_success"] for r in rows]) - real.mean()),
+    return {"rollouts": len(rows), "imagined_success": float(said.mean()), "real_success": float(real.mean()),
+            "success_gap": float(said.mean() - real.mean()),
             "auroc": imagined["auroc"], "precision": imagined["precision"], "recall": imagined["recall"],
             "f1": imagined["f1"], "agreement": imagined["accuracy"],
             "hack_rate": imagined["fp"] / n_imagined if n_imagined else float("nan"),
@@ -126,13 +142,40 @@ def verdict_metrics(rows: list[dict], eta: float) -> dict:
             "real_frames_precision": on_real["precision"], "real_frames_recall": on_real["recall"]}
 
 
-def per_task(rows: list[dict]) -> dict[int, dict]:
-    """Imagined and real success per task."""
+ETA_GRID = tuple(float(e) for e in np.round(np.arange(0.05, 1.0, 0.05), 2))
+
+
+def replay_eta(rows: list[dict], folds: int = 2, grid=ETA_GRID) -> dict:
+    """eta chosen on paired replays instead of real frames (a lever of issue 22): K-fold over
+    contexts (a context's rollouts stay together); each fold is judged at the eta with the best
+    F1 on the other folds' pairs, so the figures are never tuned on what they score. Exact: the
+    rollouts were watched to the horizon, so the verdict at any eta is known."""
+    from worldenv_core.rl.termination import best_eta
+
+    if len({r["context"] for r in rows}) < folds:
+        return {"folds": folds, "etas": []}
+    judged, etas = [], []
+    for k in range(folds):
+        train = [r for r in rows if r["context"] % folds != k]
+        eta = best_eta({e: verdict_metrics(train, e)["f1"] for e in grid}, prior=0.5)
+        etas.append(eta)
+        judged.append(verdict_metrics([r for r in rows if r["context"] % folds == k], eta))
+    n = sum(j["rollouts"] for j in judged)
+    out = {"folds": folds, "etas": etas}
+    for key in ("f1", "precision", "hack_rate", "imagined_success", "real_success"):  # weighted by pairs
+        vals = [(j[key], j["rollouts"]) for j in judged if not np.isnan(j[key])]
+        out[key] = sum(v * w for v, w in vals) / sum(w for _, w in vals) if vals else float("nan")
+    out["rollouts"] = n
+    return out
+
+
+def per_task(rows: list[dict], eta: float) -> dict[int, dict]:
+    """Imagined and real success per task at `eta`."""
     out = {}
     for t in sorted({r["task_id"] for r in rows}):
-        rs = [r for r in rows if r["task_id"] == t]
-        out[t] = {"rollouts": len(rs), "imagined_success": float(np.mean([r["imagined_success"] for r in rs])),
-                  "real_success": float(np.mean([r["real_success"] for r in rs]))}
+        judged = [judge(r, eta) for r in rows if r["task_id"] == t]
+        out[t] = {"rollouts": len(judged), "imagined_success": float(np.mean([j["imagined_success"] for j in judged])),
+                  "real_success": float(np.mean([j["real_success"] for j in judged]))}
     return out
 
 

@@ -35,13 +35,14 @@ def test_every_imagined_rollout_is_paired_with_its_real_replay(paired):
     pairs = json.loads(next(Path(exp, a.path) for a in rec.files("report") if a.path.endswith("pairs.json")).read_text())
     rows = pairs["sft@1"]["rows"]
     assert [r["context_kind"] for r in rows] == ["init", "init", "episode", "episode"]
-    for r in rows:
-        assert r["real_error"] is None and 0 < r["imagined_steps"] <= 16
-        assert isinstance(r["real_success"], bool) and 0.0 <= r["real_reward"] <= 1.0
+    for r in rows:  # watched to the horizon in imagination and replayed to it in reality
+        assert r["real_error"] is None and r["steps"] == 16 and len(r["imagined_scores"]) == len(r["real_scores"]) == 3
+        assert all(0.0 <= x <= 1.0 for x in r["imagined_scores"] + r["real_scores"])
         assert set(r["frames"]) <= {"8", "16"} and all(len(v) == 2 for v in r["frames"].values())
     assert summary["frames"][8]["n"] == 4 and np.isfinite(summary["frames"][8]["model_ssim"])
     assert 0.0 <= summary["headline"]["imagined_success"] <= 1.0 and summary["evaluator"]["policies"] == 2
     assert len(rec.files("video")) == 1 and len(rec.files("plot")) == 1
+    assert summary["replay_eta"]["folds"] == 2 and len(summary["replay_eta"]["etas"]) == 2
 
 
 def test_the_report_shows_the_verdict_table_and_the_real_episode_accounting(paired):

@@ -1,6 +1,7 @@
-"""Verdict fidelity's imagination side and its metrics: `imagine` keeps exactly the actions each
-rollout executed (so the real simulator can replay them) with its verdict; the metrics score the
-imagined verdict against known real outcomes."""
+"""Verdict fidelity's imagination side and its metrics: `imagine` watches each rollout to the
+horizon and keeps the actions it executed (so the real simulator can replay them) and its scores;
+`judge` reads the verdict at any eta off them, exactly as the imagined env at that eta would
+stop; the metrics score imagined verdicts against known real outcomes."""
 import math
 
 import numpy as np
@@ -8,7 +9,8 @@ import pytest
 import torch
 
 from tests.worldenv_core.imagination.test_recording import tiny_policy
-from worldenv_core.imagination.verdict import evaluator_metrics, frame_metrics, imagine, pair, per_task, verdict_metrics
+from worldenv_core.imagination.verdict import (evaluator_metrics, frame_metrics, imagine, judge, pair, per_task,
+                                               replay_eta, verdict_metrics)
 from worldenv_core.metrics import spearman
 from worldenv_core.rl.loop import collect_rollouts
 
@@ -17,41 +19,53 @@ def encoder(texts):
     return torch.stack([torch.full((16,), float(len(t))) for t in texts])
 
 
-@pytest.mark.parametrize("eta", [1.0, 0.0])  # 1.0: every rollout runs to the horizon; 0.0: each stops at once
-def test_imagine_keeps_the_executed_actions_and_the_verdict_of_each_rollout(make_env, contexts, eta):
-    env, ctx = make_env(eta, horizon=12), contexts()
-    runs = imagine(tiny_policy(), env, ctx, 2, encoder, torch.Generator().manual_seed(0), keep_steps=(4, 8),
-                   full_rollouts=(1,))
+@pytest.mark.parametrize("eta", [0.0, 0.45, 0.5, 0.55, 1.0])
+def test_verdicts_read_off_a_watched_rollout_equal_running_with_the_threshold(make_env, contexts, eta):
+    """imagine() watches every rollout to the horizon; judge() cuts it at the first check with
+    R > eta. That must be exactly what the imagined env at eta does (LOOP's rollouts)."""
+    ctx = contexts()
+    runs = imagine(tiny_policy(), make_env(0.5, horizon=12), ctx, 2, encoder, torch.Generator().manual_seed(0),
+                   keep_steps=(4, 8), full_rollouts=(1,))
     assert [r.context for r in runs] == [0, 0, 1, 1, 2, 2]
-    # the same draw as LOOP's own rollouts: the same generator gives the same verdicts and rewards
     batch = collect_rollouts(tiny_policy(), make_env(eta, horizon=12), ctx, 2, encoder,
                              generator=torch.Generator().manual_seed(0))
-    assert [r.steps for r in runs] == batch.t_end.tolist()
-    assert [r.success for r in runs] == batch.by_reflector.tolist()
-    assert np.allclose([r.reward for r in runs], batch.rewards.tolist())
+    rows = [pair(r, {"scores": r.scores, "first_success": None, "error": None}, 0, "init", "p", chunk=4) for r in runs]
+    judged = [judge(row, eta) for row in rows]
+    assert [j["imagined_steps"] for j in judged] == batch.t_end.tolist()
+    assert [j["imagined_success"] for j in judged] == batch.by_reflector.tolist()
+    assert np.allclose([j["imagined_reward"] for j in judged], batch.rewards.tolist(), atol=1e-4)
     for i, r in enumerate(runs):
-        assert r.actions.shape == (r.steps, 7) and r.actions.dtype == np.float32  # what was executed, nothing after
-        expected = {0, 4, 8, 12} if i == 1 else {4, 8}
-        assert set(r.frames) == {s for s in expected if s <= r.steps}
+        assert r.steps == 12 and r.actions.shape == (12, 7) and r.actions.dtype == np.float32 and len(r.scores) == 4
+        assert set(r.frames) == ({0, 4, 8, 12} if i == 1 else {4, 8})
         assert all(f.shape == (32, 32, 3) and f.dtype == np.uint8 for f in r.frames.values())
-    if eta == 1.0:
-        assert all(r.steps == 12 and not r.success for r in runs)
     # the executed actions are LOOP's sampled ones, in simulator units
     unnorm = tiny_policy().unnormalize_actions(batch.actions[0].flatten(0, 1)).numpy()
-    assert np.allclose(runs[0].actions, unnorm[:runs[0].steps], atol=1e-6)
+    stop = int(batch.t_end[0])
+    assert np.allclose(runs[0].actions[:stop], unnorm[:stop], atol=1e-6)
 
 
-def _row(imagined, reward, real, steps=40, first=30, real_reward=0.0):
-    return {"task_id": 0, "context_kind": "init", "imagined_success": imagined, "imagined_reward": reward,
-            "imagined_steps": steps, "real_success": real, "real_first_success": first if real else None,
-            "real_reward": real_reward}
+def _row(imagined_scores, first, real_scores=None, context=0, task=0):
+    return {"task_id": task, "context": context, "context_kind": "init", "chunk": 8, "steps": 32,
+            "imagined_scores": imagined_scores, "real_scores": real_scores or [0.0] * len(imagined_scores),
+            "real_first_success": first, "real_error": None}
+
+
+def test_judge_stops_at_the_first_check_above_eta_and_asks_reality_by_then():
+    row = _row([0.9, 0.2, 0.6, 0.8, 0.3], first=20, real_scores=[0.0, 0.1, 0.7, 0.9, 0.9])
+    at_half = judge(row, 0.5)  # the score at step 0 never stops a rollout; 0.6 after chunk 2 does
+    assert at_half["imagined_success"] and at_half["imagined_steps"] == 16 and at_half["imagined_reward"] == 0.6
+    assert not at_half["real_success"] and at_half["real_reward"] == 0.7  # the oracle fires at 20, after the stop
+    later = judge(row, 0.7)
+    assert later["imagined_steps"] == 24 and later["real_success"]
+    never = judge(row, 0.95)
+    assert not never["imagined_success"] and never["imagined_steps"] == 32 and never["real_success"]
 
 
 def test_verdict_metrics_count_hacks_misses_and_timing():
-    rows = [_row(True, 0.9, True, steps=40, first=32, real_reward=0.8),  # agreed success, 8 steps late
-            _row(True, 0.7, False, real_reward=0.1),  # a hack: imagined success, real failure
-            _row(False, 0.2, True, real_reward=0.9),  # missed
-            _row(False, 0.1, False), _row(False, 0.05, False)]
+    rows = [_row([0, 0.1, 0.9], first=8, real_scores=[0, 0.1, 0.8]),  # agreed success, stop 16, 8 steps late
+            _row([0, 0.7, 0.7], first=None, real_scores=[0, 0.1, 0.1]),  # a hack: imagined success, real failure
+            _row([0, 0.1, 0.2], first=12, real_scores=[0, 0.1, 0.9]),  # missed
+            _row([0, 0.1, 0.1], first=None), _row([0, 0.05, 0.05], first=None)]
     m = verdict_metrics(rows, eta=0.5)
     assert m["rollouts"] == 5 and m["hacks"] == 1 and m["missed"] == 1
     assert m["hack_rate"] == 0.5 and m["precision"] == 0.5 and m["recall"] == 0.5 and m["f1"] == 0.5
@@ -59,18 +73,19 @@ def test_verdict_metrics_count_hacks_misses_and_timing():
     assert m["timing_error_median"] == 8
     assert m["auroc"] == pytest.approx(5 / 6)  # real successes score 0.9 and 0.2 against 0.7, 0.1, 0.05
     assert m["real_frames_f1"] == 1.0  # the reflector on the real frames gets all of them right
-    assert per_task(rows) == {0: {"rollouts": 5, "imagined_success": 0.4, "real_success": 0.4}}
+    assert per_task(rows, 0.5) == {0: {"rollouts": 5, "imagined_success": 0.4, "real_success": 0.4}}
     assert verdict_metrics([], 0.5) == {"rollouts": 0}
 
 
-def test_pair_joins_the_imagined_verdict_with_the_real_replay():
-    from worldenv_core.imagination.verdict import ImaginedRun
-
-    run = ImaginedRun(context=3, actions=np.zeros((16, 7), np.float32), success=True, reward=0.8, steps=16)
-    real = {"success": False, "first_success": None, "success_at_end": False, "error": None, "scores": [0.1, 0.7, 0.3]}
-    row = pair(run, real, eta=0.5, task_id=2, context_kind="episode", policy="sft@1")
-    assert row["imagined_success"] and not row["real_success"] and row["real_reward"] == 0.3
-    assert row["real_reflector_success"]  # the reflector would have stopped at 0.7 on the real frames
+def test_eta_chosen_on_replays_is_judged_on_the_other_contexts():
+    # real successes score 0.3 in imagination, failures 0.1: the paper's 0.5 misses them all; of the
+    # etas that separate them on the other half, the one closest to 0.5 is chosen
+    rows = [_row([0, s, s], first=4 if ok else None, context=c) for c in range(4) for s, ok in ((0.3, True), (0.1, False))]
+    assert verdict_metrics(rows, 0.5)["f1"] == 0.0
+    out = replay_eta(rows)
+    assert out["folds"] == 2 and out["etas"] == [0.25, 0.25] and out["f1"] == 1.0
+    assert out["hack_rate"] == 0.0 and out["rollouts"] == 8
+    assert replay_eta(rows[:2]) == {"folds": 2, "etas": []}  # one context: nothing to hold out
 
 
 def test_frame_metrics_pair_frames_by_step_and_skip_the_shared_start():
