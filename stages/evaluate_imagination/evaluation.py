@@ -32,11 +32,13 @@ class Variant:
     name: str  # "<policy ref>@<noise scale>"
     path: str  # the policy checkpoint
     noise_scale: float
+    paired: bool = True  # replay its imagined rollouts in the real simulator (else: imagination + closed loop)
 
 
 def pair_variant(cfg, contract: TaskContract, v: Variant, env, contexts: list[PairedContext], encode, reflector: str,
                  eta: float, device, gifs: int, out: Path) -> dict:
-    """One policy: imagine `rollouts` per context, replay each in the real simulator, pair them."""
+    """One policy: imagine `rollouts` per context, replay each in the real simulator (if `v.paired`)
+    and pair them; `closed_loop_rollouts` per context of the policy acting on real frames."""
     policy, _ = load_checkpoint(v.path, "policy", contract, device=str(device))
     g = torch.Generator().manual_seed(cfg.seed)
     keep, n = sorted({0, *cfg.horizons}), cfg.rollouts
@@ -49,8 +51,9 @@ def pair_variant(cfg, contract: TaskContract, v: Variant, env, contexts: list[Pa
         for r in got:
             r.context += b
         runs += got
-    jobs = [PairedReplayJob(contract, pc.start, actions=tuple(r.actions for r in runs[i * n:(i + 1) * n]),
-                            keep=tuple(None if i * n + k in full else tuple(keep) for k in range(n)),
+    paired = range(n) if v.paired else range(0)
+    jobs = [PairedReplayJob(contract, pc.start, actions=tuple(runs[i * n + k].actions for k in paired),
+                            keep=tuple(None if i * n + k in full else tuple(keep) for k in paired),
                             reflector_path=reflector, policy_path=v.path if cfg.closed_loop_rollouts else None,
                             closed_loop_seeds=tuple(cfg.seed * 1_000_003 + i * 101 + k for k in range(cfg.closed_loop_rollouts)),
                             noise_scale=v.noise_scale, horizon=cfg.horizon)
@@ -78,7 +81,8 @@ def pair_variant(cfg, contract: TaskContract, v: Variant, env, contexts: list[Pa
                 montage_video([np.stack([run.frames[s] for s in steps]), np.stack([rep["frames"][s] for s in steps])],
                               out / "videos" / f"{v.name.replace('/', '_')}_ctx{i:03d}_task{pc.start.task_id:02d}_{verdict}.gif",
                               max_frames=len(steps), fps=4)
-    return {"rows": rows, "closed_loop": closed, "imagined_rollouts": len(runs),
+    said = [any(x > eta for x in r.scores[1:]) for r in runs]  # the imagined verdicts at eta, paired or not
+    return {"rows": rows, "closed_loop": closed, "imagined_rollouts": len(runs), "imagined_success": float(np.mean(said)),
             "real_episodes": len(rows) + len(closed)}
 
 
@@ -89,7 +93,8 @@ def summarise(results: dict, names: list[str], eta: float, horizons: list[int]) 
     for name in names:
         m = verdict_metrics(results[name]["rows"], eta)
         closed = results[name]["closed_loop"]
-        per_policy[name] = {**m, "closed_loop_success": float(np.mean(closed)) if closed else None,
+        per_policy[name] = {**m, "imagined_success": results[name].get("imagined_success", m.get("imagined_success")),
+                            "closed_loop_success": float(np.mean(closed)) if closed else None,
                             "real_episodes": results[name]["real_episodes"]}
     rows = results[names[0]]["rows"]
     tasks = per_task(rows, eta)
@@ -197,8 +202,9 @@ def section(ctx: ReportContext, limit: int = 8) -> list[str]:
         lines += ["", f"Newest run (`{newest.id}`), per policy:", "", *markdown_table(
             ["policy", "imagined success", "paired real success", "closed-loop real success", "AUROC", "F1", "hack rate",
              "real episodes"],
-            [[n, _pct(m["imagined_success"]), _pct(m["real_success"]), _pct(m["closed_loop_success"]), _num(m["auroc"]),
-              _num(m["f1"]), _pct(m["hack_rate"]), m["real_episodes"]] for n, m in s["per_policy"].items()])]
+            [[n, _pct(m["imagined_success"]), _pct(m.get("real_success")), _pct(m["closed_loop_success"]),
+              _num(m.get("auroc")), _num(m.get("f1")), _pct(m.get("hack_rate")), m["real_episodes"]]
+             for n, m in s["per_policy"].items()])]
         lines += ["", "By context kind and task (headline policy):", "", *markdown_table(
             ["contexts", "pairs", "imagined success", "real success", "AUROC", "F1"],
             [[k, m["rollouts"], _pct(m.get("imagined_success")), _pct(m.get("real_success")), _num(m.get("auroc")),

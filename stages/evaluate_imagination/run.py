@@ -36,6 +36,7 @@ def validate(cfg: DictConfig) -> None:
     require_task(cfg)
     for key in ("rollouts", "horizon"):
         positive_int(cfg, key)
+    positive_int(cfg, "paired_policies")
     for key in ("closed_loop_rollouts", "gifs", "contexts.init_states", "contexts.episodes_per_task",
                 "contexts.episode_frames"):
         positive_int(cfg, key, allow_zero=True)
@@ -70,6 +71,7 @@ def run(cfg: DictConfig) -> dict:
                         stage, None if ref in POLICY_SOURCES else ref, POLICY_SOURCES.get(ref, "train_policy"),
                         contract.name, cfg.scale.name), noise_scale=float(n))
                     for ref in cfg.policies for n in cfg.noise_scales]
+        variants = [Variant(v.name, v.path, v.noise_scale, paired=i < cfg.paired_policies) for i, v in enumerate(variants)]
         stage.record.tags.update({"eta": eta, "sampling_steps": cfg.sampling_steps,
                                   "worldsim": Path(worldsim).parent.name, "reflector": Path(reflector).parent.name})
         encoder = InstructionEncoder()
@@ -83,14 +85,13 @@ def run(cfg: DictConfig) -> dict:
                  "world model %s, reflector %s", len(variants), len(contexts), sum(c.kind == "init" for c in contexts),
                  sum(c.kind == "episode" for c in contexts), cfg.rollouts, eta, worldsim, reflector)
         # Each policy's pairs are kept as they finish: a killed run re-run skips the policies done.
-        work = work_dir(cfg.experiment_dir, "evaluate_imagination",
-                        {k: v for k, v in config.items() if k not in ("policies", "noise_scales", "progress", "workers",
-                                                                        "launcher", "ray_address", "gifs")},
+        shown = ("policies", "noise_scales", "paired_policies", "progress", "workers", "launcher", "ray_address", "gifs")
+        work = work_dir(cfg.experiment_dir, "evaluate_imagination", {k: v for k, v in config.items() if k not in shown},
                         stage.work_inputs())
         stage.lock(work)
         results = {}
         for i, v in enumerate(variants):
-            path = work / f"{config_hash({'policy': v.path, 'noise': v.noise_scale})}.json"
+            path = work / f"{config_hash({'policy': v.path, 'noise': v.noise_scale, 'paired': v.paired})}.json"
             if path.exists():
                 results[v.name] = json.loads(path.read_text())
                 log.info("%s: paired earlier (%s)", v.name, path)
