@@ -14,8 +14,8 @@ import torch
 from stages.evaluate_imagination.contexts import PairedContext
 from worldenv_core.contract import TaskContract
 from worldenv_core.envs.replay import PairedReplayJob, replay_context
-from worldenv_core.imagination.verdict import (evaluator_metrics, frame_metrics, imagine, judge, pair, per_task,
-                                               replay_eta, verdict_metrics)
+from worldenv_core.imagination.verdict import (eta_curve, evaluator_metrics, frame_metrics, imagine, judge, pair,
+                                               per_task, replay_eta, verdict_metrics)
 from worldenv_core.models.checkpoint import load_checkpoint
 from worldenv_core.parallel import run_jobs
 from worldenv_core.report import ReportContext, markdown_table, titled
@@ -110,6 +110,7 @@ def summarise(results: dict, names: list[str], eta: float, horizons: list[int]) 
             "by_context": {kind: verdict_metrics([r for r in rows if r["context_kind"] == kind], eta)
                            for kind in ("init", "episode")},
             "replay_eta": replay_eta(rows),  # the lever: eta chosen on replays (2-fold over contexts)
+            "eta_curve": eta_curve(rows),
             "evaluator": evaluator_metrics(per_policy, "closed_loop_success"),
             "evaluator_paired": evaluator_metrics(per_policy, "real_success"),
             "real_episodes": sum(r["real_episodes"] for r in results.values() if r),
@@ -125,6 +126,8 @@ def write_outputs(stage, summary: dict, results: dict, work: Path) -> None:
         tmp.write_text(json.dumps(data, indent=1, default=str))
         stage.add_output(tmp.replace(out / name), kind="report")
     stage.add_output(plot_policies(summary, out / "imagined_vs_real.png"), kind="plot")
+    if summary.get("eta_curve"):
+        stage.add_output(plot_eta_curve(summary, out / "verdict_vs_eta.png"), kind="plot")
     for gif in sorted((Path(work) / "videos").glob("*.gif")):
         stage.add_output(gif, kind="video")
 
@@ -143,6 +146,22 @@ def plot_policies(summary: dict, path: Path) -> Path:
     ax.plot([0, 1], [0, 1], "k--", lw=0.8)
     ax.set(xlim=(-0.02, 1.02), ylim=(-0.02, 1.02), xlabel="real success", ylabel="imagined success",
            title="the world model as a policy evaluator")
+    return save_figure(fig, path)
+
+
+def plot_eta_curve(summary: dict, path: Path) -> Path:
+    """F1, precision and recall of the imagined verdict, and imagined against real success, at
+    every eta (the headline policy's pairs); the reflector's own eta marked."""
+    curve = summary["eta_curve"]
+    fig, ax = figure(figsize=(6, 3.5))
+    etas = [c["eta"] for c in curve]
+    for key, style in (("f1", "-"), ("precision", "--"), ("recall", ":"), ("imagined_success", "-."),
+                       ("real_success", "-")):
+        ax.plot(etas, [c[key] for c in curve], style, label=key.replace("_", " "), lw=2.5 if key == "f1" else 1.2)
+    ax.axvline(summary["eta"], color="k", lw=0.8)
+    ax.set(xlabel="eta", ylim=(-0.02, 1.02), title=f"imagined verdict against real, {summary['headline_policy']}")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
     return save_figure(fig, path)
 
 
@@ -216,8 +235,8 @@ def section(ctx: ReportContext, limit: int = 8) -> list[str]:
             [[h, f["n"], f"{_num(f['model_psnr'], 2)} / {_num(f['copy_psnr'], 2)}",
               f"{_num(f['model_ssim'])} / {_num(f['copy_ssim'])}"] for h, f in s["frames"].items()])]
         for art in newest.files("plot"):
-            plot = ctx.copy(art.path, "fidelity_policies.png", folder=".")
-            lines += ["", f"![imagined vs real success per policy]({plot})"] if plot else []
+            plot = ctx.copy(art.path, f"fidelity_{Path(art.path).name}", folder=".")
+            lines += ["", f"![{Path(art.path).stem.replace('_', ' ')}]({plot})"] if plot else []
         gifs = [g for g in (ctx.copy(a.path, f"fidelity_{Path(a.path).name}") for a in newest.files("video")) if g]
         if gifs:
             lines += ["", "Imagined | real, the same actions: " + " ".join(f"![pair]({g})" for g in gifs)]

@@ -145,6 +145,13 @@ def verdict_metrics(rows: list[dict], eta: float) -> dict:
 ETA_GRID = tuple(float(e) for e in np.round(np.arange(0.05, 1.0, 0.05), 2))
 
 
+def eta_curve(rows: list[dict], grid=ETA_GRID) -> list[dict]:
+    """The agreement at every threshold (exact: the pairs were watched to the horizon), to see
+    whether any eta would make the imagined verdict usable and what it would cost."""
+    return [{"eta": e, **{k: verdict_metrics(rows, e)[k] for k in ("f1", "precision", "recall", "imagined_success",
+                                                                    "real_success")}} for e in grid] if rows else []
+
+
 def replay_eta(rows: list[dict], folds: int = 2, grid=ETA_GRID) -> dict:
     """eta chosen on paired replays instead of real frames (a lever of issue 22): K-fold over
     contexts (a context's rollouts stay together); each fold is judged at the eta with the best

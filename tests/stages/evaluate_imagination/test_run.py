@@ -44,7 +44,8 @@ def test_every_imagined_rollout_is_paired_with_its_real_replay(paired):
         assert set(r["frames"]) <= {"8", "16"} and all(len(v) == 2 for v in r["frames"].values())
     assert summary["frames"][8]["n"] == 4 and np.isfinite(summary["frames"][8]["model_ssim"])
     assert 0.0 <= summary["headline"]["imagined_success"] <= 1.0 and summary["evaluator"]["policies"] == 2
-    assert len(rec.files("video")) == 1 and len(rec.files("plot")) == 1
+    assert len(rec.files("video")) == 1 and len(rec.files("plot")) == 2  # per policy; verdict vs eta
+    assert [c["eta"] for c in summary["eta_curve"]][:2] == [0.05, 0.1] and len(summary["eta_curve"]) == 19
     assert summary["replay_eta"]["folds"] == 2 and len(summary["replay_eta"]["etas"]) == 2
 
 
@@ -52,7 +53,7 @@ def test_the_report_shows_the_verdict_table_and_the_real_episode_accounting(pair
     exp, _ = paired
     report = (Path(exp) / "report" / "report.md").read_text()
     section = report.split("## Verdict fidelity: imagined against real")[1].split("\n## ")[0]
-    assert "sft@3" in section and "fidelity_policies.png" in section and "![pair](videos/fidelity_" in section
+    assert "sft@3" in section and "fidelity_imagined_vs_real.png" in section and "fidelity_verdict_vs_eta.png" in section and "![pair](videos/fidelity_" in section
     accounting = report.split("## Real-simulator episodes")[1].split("\n## ")[0]
     assert "| evaluate_imagination |" in accounting and "| collect | scale=tiny, source=expert | training data: expert |" in accounting
     assert "Total: training data: " in accounting and "evaluation: 8" in accounting
