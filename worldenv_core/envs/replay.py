@@ -16,6 +16,7 @@ each one real episode.
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass
 
@@ -115,6 +116,14 @@ class PairedReplayJob:
     horizon: int = 0
 
 
+@functools.cache
+def _encoder():
+    """One instruction encoder per worker process (loading it costs more than a replay's scoring)."""
+    from worldenv_core.models.text import InstructionEncoder
+
+    return InstructionEncoder()
+
+
 def replay_context(job: PairedReplayJob) -> dict:
     """The real outcome of every imagined rollout of one context (and, with `policy_path`, of
     closed-loop rollouts of the policy from there). Each replay or rollout is one real episode."""
@@ -125,11 +134,7 @@ def replay_context(job: PairedReplayJob) -> dict:
     camera = c.cameras[0]
     env = cached_env(c.suite, job.start.task_id, c.cameras, c.image_size, render=True)
     reflector = cached_reflector(job.reflector_path, c) if job.reflector_path else None
-    encoder = None
-    if reflector is not None:
-        from worldenv_core.models.text import InstructionEncoder
-
-        encoder = InstructionEncoder()
+    encoder = _encoder() if reflector is not None else None
     replays = []
     for actions, keep in zip(job.actions, job.keep):
         scorer = reflector.scorer([env.instruction], encoder) if reflector is not None else None
