@@ -14,8 +14,8 @@ import torch
 from stages.evaluate_imagination.contexts import PairedContext
 from worldenv_core.contract import TaskContract
 from worldenv_core.envs.replay import PairedReplayJob, replay_context
-from worldenv_core.imagination.verdict import (eta_curve, evaluator_metrics, frame_metrics, imagine, judge, pair,
-                                               per_task, replay_eta, verdict_metrics)
+from worldenv_core.imagination.verdict import (as_judged_by, eta_curve, evaluator_metrics, frame_metrics, imagine, judge,
+                                               pair, per_task, replay_eta, verdict_metrics)
 from worldenv_core.models.checkpoint import load_checkpoint
 from worldenv_core.parallel import run_jobs
 from worldenv_core.report import ReportContext, markdown_table, titled
@@ -35,10 +35,20 @@ class Variant:
     paired: bool = True  # replay its imagined rollouts in the real simulator (else: imagination + closed loop)
 
 
+@dataclass(frozen=True)
+class Judge:
+    """A further reflector judging the same pairs at its own threshold (`more_reflectors`)."""
+    name: str  # its record id (or folder name)
+    path: str
+    eta: float
+    model: object = None  # loaded on the imagination device
+
+
 def pair_variant(cfg, contract: TaskContract, v: Variant, env, contexts: list[PairedContext], encode, reflector: str,
-                 eta: float, device, gifs: int, out: Path) -> dict:
+                 eta: float, device, gifs: int, out: Path, judges: tuple[Judge, ...] = ()) -> dict:
     """One policy: imagine `rollouts` per context, replay each in the real simulator (if `v.paired`)
-    and pair them; `closed_loop_rollouts` per context of the policy acting on real frames."""
+    and pair them; `closed_loop_rollouts` per context of the policy acting on real frames. `judges`
+    score the same imagined and real frames beside the reflector that terminates."""
     policy, _ = load_checkpoint(v.path, "policy", contract, device=str(device))
     g = torch.Generator().manual_seed(cfg.seed)
     keep, n = sorted({0, *cfg.horizons}), cfg.rollouts
@@ -47,14 +57,15 @@ def pair_variant(cfg, contract: TaskContract, v: Variant, env, contexts: list[Pa
     for b in range(0, len(contexts), BATCH_CONTEXTS):
         part = contexts[b:b + BATCH_CONTEXTS]
         got = imagine(policy, env, [c.context for c in part], n, encode, g, v.noise_scale, keep,
-                      {r - b * n for r in full if b * n <= r < (b + len(part)) * n})
+                      {r - b * n for r in full if b * n <= r < (b + len(part)) * n}, [j.model for j in judges])
         for r in got:
             r.context += b
         runs += got
     paired = range(n) if v.paired else range(0)
     jobs = [PairedReplayJob(contract, pc.start, actions=tuple(runs[i * n + k].actions for k in paired),
                             keep=tuple(None if i * n + k in full else tuple(keep) for k in paired),
-                            reflector_path=reflector, policy_path=v.path if cfg.closed_loop_rollouts else None,
+                            reflector_paths=(reflector, *(j.path for j in judges)),
+                            policy_path=v.path if cfg.closed_loop_rollouts else None,
                             closed_loop_seeds=tuple(cfg.seed * 1_000_003 + i * 101 + k for k in range(cfg.closed_loop_rollouts)),
                             noise_scale=v.noise_scale, horizon=cfg.horizon)
             for i, pc in enumerate(contexts)]
@@ -86,9 +97,17 @@ def pair_variant(cfg, contract: TaskContract, v: Variant, env, contexts: list[Pa
             "real_episodes": len(rows) + len(closed)}
 
 
-def summarise(results: dict, names: list[str], eta: float, horizons: list[int]) -> dict:
-    """The headline (the first policy's pairs), per context kind and task, frames by horizon, and
-    the world model as a policy evaluator over all policies."""
+def headline(rows: list[dict], eta: float) -> dict:
+    """The verdict's agreement at `eta` over `rows`, its worst per-task gap and eta chosen on replays."""
+    tasks = per_task(rows, eta)
+    return {**verdict_metrics(rows, eta), "replay_eta": replay_eta(rows),
+            "max_task_gap": max(abs(t["imagined_success"] - t["real_success"]) for t in tasks.values()) if tasks else None}
+
+
+def summarise(results: dict, names: list[str], eta: float, horizons: list[int], judges: tuple[Judge, ...] = ()) -> dict:
+    """The headline (the first policy's pairs), per context kind and task, frames by horizon, the
+    world model as a policy evaluator over all policies, and the further reflectors' verdicts on
+    the headline's pairs."""
     per_policy = {}
     for name in names:
         m = verdict_metrics(results[name]["rows"], eta)
@@ -115,7 +134,9 @@ def summarise(results: dict, names: list[str], eta: float, horizons: list[int]) 
             "evaluator_paired": evaluator_metrics(per_policy, "real_success"),
             "real_episodes": sum(r["real_episodes"] for r in results.values() if r),
             "imagined_rollouts": sum(r["imagined_rollouts"] for r in results.values() if r),
-            "per_policy": per_policy, "per_task": tasks, "frames": frames}
+            "per_policy": per_policy, "per_task": tasks, "frames": frames,
+            "judges": {j.name: {"eta": j.eta, **headline([as_judged_by(r, i) for r in rows], j.eta)}
+                       for i, j in enumerate(judges) if rows}}
 
 
 def write_outputs(stage, summary: dict, results: dict, work: Path) -> None:
@@ -224,6 +245,16 @@ def section(ctx: ReportContext, limit: int = 8) -> list[str]:
             [[n, _pct(m["imagined_success"]), _pct(m.get("real_success")), _pct(m["closed_loop_success"]),
               _num(m.get("auroc")), _num(m.get("f1")), _pct(m.get("hack_rate")), m["real_episodes"]]
              for n, m in s["per_policy"].items()])]
+        if s.get("judges"):
+            first = {"eta": s["eta"], **s["headline"], "replay_eta": s.get("replay_eta", {})}
+            lines += ["", "Reflectors judging the same pairs (the headline's imagined rollouts and their real replays; "
+                      "the first terminates the imagined rollouts, each judges at its own eta):", "", *markdown_table(
+                ["reflector", "eta", "AUROC", "F1", "hack rate", "imagined / real success", "max task gap",
+                 "real-frame F1", "eta chosen on replays: F1 / hack rate (etas)"],
+                [[name, _num(m["eta"], 2), _num(m["auroc"]), _num(m["f1"]), _pct(m["hack_rate"]),
+                  f"{_pct(m['imagined_success'])} / {_pct(m['real_success'])}", _pct(m["max_task_gap"]),
+                  _num(m["real_frames_f1"]), _replay_eta(m.get("replay_eta", {}))]
+                 for name, m in [(newest.tags.get("reflector"), first), *s["judges"].items()]])]
         lines += ["", "By context kind and task (headline policy):", "", *markdown_table(
             ["contexts", "pairs", "imagined success", "real success", "AUROC", "F1"],
             [[k, m["rollouts"], _pct(m.get("imagined_success")), _pct(m.get("real_success")), _num(m.get("auroc")),

@@ -19,10 +19,11 @@ import torch
 from omegaconf import DictConfig
 
 from stages.evaluate_imagination.contexts import build_contexts, held_out_by_both
-from stages.evaluate_imagination.evaluation import Variant, pair_variant, summarise, write_outputs
+from stages.evaluate_imagination.evaluation import Judge, Variant, pair_variant, summarise, write_outputs
 from stages.report import write_report
 from worldenv_core.imagination.env import build_imagined_env
 from worldenv_core.manifest import StageRun, config_hash
+from worldenv_core.models.checkpoint import load_checkpoint
 from worldenv_core.models.text import InstructionEncoder
 from worldenv_core.rl.termination import check_eta, reflector_eta
 from worldenv_core.stage import (POLICY_SOURCES, ConfigError, positive_int, require_task, resolve_checkpoint, resolved,
@@ -79,7 +80,14 @@ def run(cfg: DictConfig) -> dict:
         env, camera = build_imagined_env(worldsim, reflector, eta, encode, cfg.horizon, cfg.sampling_steps, device, contract)
         if camera != contract.cameras[0]:
             raise ConfigError(f"the world model imagines {camera!r} but task {contract.name} renders {contract.cameras[0]!r} first")
-        held = held_out_by_both(manifest, stage, contract, cfg.scale.name, worldsim, reflector)
+        judges = []
+        for ref in cfg.more_reflectors:
+            path = resolve_checkpoint(stage, ref, "train_reflector", contract.name, cfg.scale.name)
+            model, meta = load_checkpoint(path, "reflector", contract, device=str(device))
+            if meta["camera"] != camera:
+                raise ConfigError(f"more_reflectors: {ref} watches {meta['camera']!r}, the world model imagines {camera!r}")
+            judges.append(Judge(Path(path).parent.name, path, reflector_eta(path, None), model))
+        held = held_out_by_both(manifest, stage, contract, cfg.scale.name, worldsim, reflector, [j.path for j in judges])
         contexts = build_contexts(cfg, contract, held)
         log.info("paired replay of %d policies x %d contexts (%d init states, %d mid-episode) x %d rollouts; eta %.2f; "
                  "world model %s, reflector %s", len(variants), len(contexts), sum(c.kind == "init" for c in contexts),
@@ -98,13 +106,13 @@ def run(cfg: DictConfig) -> dict:
                 continue
             torch.manual_seed(cfg.seed)
             results[v.name] = pair_variant(cfg, contract, v, env, contexts, encode, reflector, eta, device,
-                                           gifs=cfg.gifs if i == 0 else 0, out=work)
+                                           gifs=cfg.gifs if i == 0 else 0, out=work, judges=tuple(judges))
             tmp = path.with_suffix(".json.tmp")
             tmp.write_text(json.dumps(results[v.name]))
             tmp.replace(path)
-        summary = summarise(results, [v.name for v in variants], eta, list(cfg.horizons))
+        summary = summarise(results, [v.name for v in variants], eta, list(cfg.horizons), tuple(judges))
         write_outputs(stage, summary, results, work)
-        stage.metrics.update({k: v for k, v in summary.items() if k not in ("per_policy", "per_task", "frames")})
+        stage.metrics.update({k: v for k, v in summary.items() if k not in ("per_policy", "per_task", "frames", "judges")})
         log.info("verdict fidelity of %s: %s", variants[0].name, json.dumps(summary["headline"]))
     report = write_report(manifest.root, contract.name)
     log.info("experiment report: %s", report)
