@@ -201,6 +201,11 @@ def _mark(key: str, value) -> str:
     return " (met)" if (value >= target if op == ">=" else value <= target) else f" (target {op} {target:g})"
 
 
+def _sampler(tags: dict) -> str:
+    steps, noise = tags.get("sampling_steps"), tags.get("sampler_noise")
+    return f"{steps or 'default'}, {'default' if noise is None else f'{noise:g}'}"
+
+
 def _replay_eta(r: dict) -> str:
     if not r.get("etas"):
         return ""
@@ -219,7 +224,7 @@ def section(ctx: ReportContext, limit: int = 8) -> list[str]:
         if not s:
             continue
         h, ev = s["headline"], s["evaluator"]
-        rows.append([r.tags.get("worldsim"), r.tags.get("reflector"), _num(s["eta"], 2), r.tags.get("sampling_steps") or "default",
+        rows.append([r.tags.get("worldsim"), r.tags.get("reflector"), _num(s["eta"], 2), _sampler(r.tags),
                      s["headline_policy"], h["rollouts"], _num(h["auroc"]) + _mark("auroc", h["auroc"]),
                      _num(h["f1"]) + _mark("f1", h["f1"]), _pct(h["hack_rate"]) + _mark("hack_rate", h["hack_rate"]),
                      f"{_pct(h['imagined_success'])} / {_pct(h['real_success'])}",
@@ -233,7 +238,7 @@ def section(ctx: ReportContext, limit: int = 8) -> list[str]:
              "real frames of the same actions (low: the reflector is wrong; high while F1 is low: the world model is); "
              "eta chosen on replays: each half of the contexts judged at the eta with the best F1 on the other half's pairs; "
              "evaluator: imagined against closed-loop real success over the policies.", "",
-             *markdown_table(["world model", "reflector", "eta", "sampler steps", "policy", "pairs", "AUROC",
+             *markdown_table(["world model", "reflector", "eta", "sampler (steps, noise)", "policy", "pairs", "AUROC",
                               "F1", "hack rate", "imagined / real success", "max task gap", "timing error (median steps)",
                               "real-frame F1", "eta chosen on replays: F1 / hack rate (etas)", "evaluator Spearman / MAE (policies)", "real episodes"], rows)]
     newest = runs[-1]

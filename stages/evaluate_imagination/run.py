@@ -52,6 +52,8 @@ def validate(cfg: DictConfig) -> None:
     bad = [h for h in cfg.horizons if not isinstance(h, int) or h <= 0 or h % cfg.task.chunk]
     if bad:
         raise ConfigError(f"horizons must be positive multiples of the chunk ({cfg.task.chunk}): {bad}")
+    if cfg.sampler_noise is not None and not 0 <= cfg.sampler_noise <= 1:
+        raise ConfigError(f"sampler_noise must be in [0, 1] (null: the world model's own), got {cfg.sampler_noise}")
     try:
         if cfg.eta is not None:
             check_eta(cfg.eta)
@@ -73,11 +75,12 @@ def run(cfg: DictConfig) -> dict:
                         contract.name, cfg.scale.name), noise_scale=float(n))
                     for ref in cfg.policies for n in cfg.noise_scales]
         variants = [Variant(v.name, v.path, v.noise_scale, paired=i < cfg.paired_policies) for i, v in enumerate(variants)]
-        stage.record.tags.update({"eta": eta, "sampling_steps": cfg.sampling_steps,
+        stage.record.tags.update({"eta": eta, "sampling_steps": cfg.sampling_steps, "sampler_noise": cfg.sampler_noise,
                                   "worldsim": Path(worldsim).parent.name, "reflector": Path(reflector).parent.name})
         encoder = InstructionEncoder()
         encode = lambda s: encoder(s).to(device)  # noqa: E731
-        env, camera = build_imagined_env(worldsim, reflector, eta, encode, cfg.horizon, cfg.sampling_steps, device, contract)
+        env, camera = build_imagined_env(worldsim, reflector, eta, encode, cfg.horizon, cfg.sampling_steps, device, contract,
+                                         cfg.sampler_noise)
         if camera != contract.cameras[0]:
             raise ConfigError(f"the world model imagines {camera!r} but task {contract.name} renders {contract.cameras[0]!r} first")
         judges = []
@@ -87,7 +90,9 @@ def run(cfg: DictConfig) -> dict:
             if meta["camera"] != camera:
                 raise ConfigError(f"more_reflectors: {ref} watches {meta['camera']!r}, the world model imagines {camera!r}")
             judges.append(Judge(Path(path).parent.name, path, reflector_eta(path, None), model))
-        held = held_out_by_both(manifest, stage, contract, cfg.scale.name, worldsim, reflector, [j.path for j in judges])
+        # init-state contexts alone need no recorded episode: checkpoint folders are enough
+        held = (held_out_by_both(manifest, stage, contract, cfg.scale.name, worldsim, reflector, [j.path for j in judges])
+                if cfg.contexts.episodes_per_task and cfg.contexts.episode_frames else [])
         contexts = build_contexts(cfg, contract, held)
         log.info("paired replay of %d policies x %d contexts (%d init states, %d mid-episode) x %d rollouts; eta %.2f; "
                  "world model %s, reflector %s", len(variants), len(contexts), sum(c.kind == "init" for c in contexts),

@@ -75,7 +75,7 @@ def run(cfg: DictConfig) -> dict:
         eta = reflector_eta(reflector_path, cfg.eta)
         stage.record.tags["eta"] = eta  # the threshold used, also when it is the reflector's own
         env, camera = build_imagined_env(worldsim_path, reflector_path, eta, encode, rl.horizon, rl.sampling_steps, device,
-                                         contract)
+                                         contract, rl.sampler_noise)
         policy, pmeta = load_checkpoint(policy_path, "policy", contract, device=str(device))
         if policy.cameras != [camera]:
             raise ConfigError(f"the policy looks at {policy.cameras}, but the world simulator imagines only {camera!r}")

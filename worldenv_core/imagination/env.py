@@ -102,14 +102,16 @@ class ImaginedEnv:
 
 
 def build_imagined_env(worldsim_path: str, reflector_path: str, eta: float, encoder, horizon: int,
-                       sampling_steps: int | None, device, contract=None) -> tuple[ImaginedEnv, str]:
+                       sampling_steps: int | None, device, contract=None,
+                       sampler_noise: float | None = None) -> tuple[ImaginedEnv, str]:
     """The imagined environment LOOP trains in: the world simulator with each task's camera and
-    the reflector as reward. Returns it and the camera it imagines."""
+    the reflector as reward. Returns it and the camera it imagines. `sampling_steps` and
+    `sampler_noise` override the world model's flow sampler (None: its own settings)."""
     from worldenv_core.models.checkpoint import CheckpointError, load_checkpoint, read_config
 
     meta = read_config(worldsim_path)["meta"]
     cameras = {int(t): PinholeCamera.from_dict(c) for t, c in meta["cameras"].items()}
-    sim = ImaginedSimulator.from_checkpoint(worldsim_path, min(cameras), sampling_steps, device, contract)
+    sim = ImaginedSimulator.from_checkpoint(worldsim_path, min(cameras), sampling_steps, device, contract, sampler_noise)
     reflector, rmeta = load_checkpoint(reflector_path, "reflector", contract, device=str(device))
     if rmeta["camera"] != meta["camera"]:
         raise CheckpointError(f"the reflector watches {rmeta['camera']!r} but the world simulator imagines "

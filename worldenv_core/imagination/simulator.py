@@ -44,12 +44,16 @@ class ChunkResult:
 
 class ImaginedSimulator:
     def __init__(self, model: WorldSimulator, kinematics: NextStateModel, camera: PinholeCamera,
-                 sampling_steps: int | None = None, device: str | torch.device = "cpu", detail_gate: float | None = None):
+                 sampling_steps: int | None = None, device: str | torch.device = "cpu", detail_gate: float | None = None,
+                 noise_scale: float | None = None):
         if camera.image_size != model.image_size:
             raise ValueError(f"camera renders {camera.image_size} px but the world model makes {model.image_size} px")
         self.model = model.to(device).eval()
         self.kinematics, self.camera = kinematics, camera
         self.steps = sampling_steps
+        if noise_scale is not None and not 0.0 <= noise_scale <= 1.0:
+            raise ValueError(f"the sampler's noise_scale must be in [0, 1], got {noise_scale}")
+        self.noise = noise_scale  # the flow sampler's temperature; None: the checkpoint's (0: the conditional mean)
         self.detail_gate = float(model.detail_gate if detail_gate is None else detail_gate)  # None: the checkpoint's
         if self.detail_gate < 0:
             raise ValueError(f"detail_gate must be >= 0 (0 = off), got {self.detail_gate}")
@@ -63,7 +67,7 @@ class ImaginedSimulator:
 
     @classmethod
     def from_checkpoint(cls, path, task_id: int, sampling_steps: int | None = None, device="cpu",
-                        contract=None) -> "ImaginedSimulator":
+                        contract=None, noise_scale: float | None = None) -> "ImaginedSimulator":
         """A trained world simulator (a train_worldsim checkpoint folder) set up for one task:
         its kinematic model and that task's camera travel in the checkpoint's metadata."""
         from worldenv_core.models.checkpoint import CheckpointError, load_checkpoint
@@ -72,7 +76,7 @@ class ImaginedSimulator:
         if str(task_id) not in meta["cameras"]:
             raise CheckpointError(f"world simulator {path} was trained on tasks {sorted(meta['cameras'])}, not task {task_id}")
         return cls(model, NextStateModel(**meta["kinematics"]), PinholeCamera.from_dict(meta["cameras"][str(task_id)]),
-                   sampling_steps=sampling_steps, device=device)
+                   sampling_steps=sampling_steps, device=device, noise_scale=noise_scale)
 
     @torch.no_grad()
     def reset(self, frames: torch.Tensor, proprio: torch.Tensor, prev_proprio: torch.Tensor | None = None,
@@ -112,7 +116,8 @@ class ImaginedSimulator:
         states, self.carry = self.kinematics.rollout(self.proprio, actions.double(), self.carry)
         maps = (draw_action_maps(states.float(), self.camera, size=self.model.map_size) if self.rollout_cameras is None
                 else draw_action_maps_per_rollout(states, self.rollout_cameras, self.model.map_size))
-        z = self.model.predict_latents(self.memory(), maps, actions.float(), steps=self.steps, generator=generator)
+        z = self.model.predict_latents(self.memory(), maps, actions.float(), steps=self.steps, generator=generator,
+                                       noise_scale=self.noise)
         if self.model.static_snap > 0:
             z = snap_static(z, self.anchor_latent, self.model.static_snap)
         self.latents = torch.cat([self.latents, z], dim=1)
