@@ -7,7 +7,7 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, ListConfig
 
 from worldenv_core.manifest import config_hash
 
@@ -39,7 +39,9 @@ def episode_dir(cfg: DictConfig) -> Path:
     if cfg.source == "expert":  # episodes of a changed expert are other episodes: never mix them
         defining["expert_code"] = expert_code_hash()
     if cfg.source == "policy":
-        defining.update(policy=str(cfg.policy_from), noise_scale=cfg.noise_scale, stop_on_success=cfg.stop_on_success)
+        noise = cfg.noise_scale  # a number as before (earlier collections keep their folders), or a list
+        defining.update(policy=str(cfg.policy_from), noise_scale=list(noise) if isinstance(noise, ListConfig) else noise,
+                        stop_on_success=cfg.stop_on_success)
     if cfg.source == "lerobot":
         defining["import"] = [str(cfg.lerobot_import.root), cfg.lerobot_import.repo_id, cfg.lerobot_import.max_episodes]
     return Path(cfg.data_dir) / task.name / f"{cfg.source}-{config_hash(defining)[:8]}"

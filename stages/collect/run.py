@@ -10,7 +10,7 @@ from collections import Counter
 from pathlib import Path
 
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig
+from omegaconf import DictConfig, ListConfig
 
 from stages.collect.episodes import episode_dir, expert_code_hash  # noqa: F401 - part of the stage's API
 from stages.collect.evaluation import expert_eval, preview
@@ -33,8 +33,10 @@ def validate(cfg: DictConfig) -> None:
     require_task(cfg)
     if cfg.source not in SOURCES:
         raise ConfigError(f"source must be one of {', '.join(SOURCES)}, got {cfg.source!r}")
-    if cfg.source == "policy" and not cfg.noise_scale > 0:
-        raise ConfigError(f"noise_scale must be > 0, got {cfg.noise_scale}")
+    if cfg.source == "policy":
+        scales = noise_scales(cfg)
+        if not scales or any(isinstance(n, bool) or not isinstance(n, (int, float)) or not n > 0 for n in scales):
+            raise ConfigError(f"noise_scale must be a number > 0 or a list of them, got {cfg.noise_scale}")
     if cfg.source == "lerobot" and not cfg.lerobot_import.root:
         raise ConfigError("source=lerobot needs lerobot_import.root=<folder of a local LeRobotDataset>")
     if cfg.source == "lerobot" and not Path(cfg.lerobot_import.root).is_dir():
@@ -49,6 +51,12 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"expert_eval.init_states is at most 50 (the benchmark has 50 per task), got {cfg.expert_eval.init_states}")
     if cfg.workers is not None:
         positive_int(cfg, "workers")
+
+
+def noise_scales(cfg: DictConfig) -> list:
+    """`noise_scale` as a list: one number, or several cycled over each task's episodes."""
+    n = cfg.noise_scale
+    return list(n) if isinstance(n, (list, tuple, ListConfig)) else [n]
 
 
 def run(cfg: DictConfig) -> dict:
@@ -83,10 +91,10 @@ def _collect(cfg: DictConfig, contract: TaskContract, task_ids: list[int], stage
                   post_success_steps=cfg.post_success_steps)
     path = lambda t, k: str(out_dir / f"task{t:02d}" / f"{cfg.source}_{k:04d}.mcap")  # noqa: E731
     if cfg.source == "policy":
-        policy_path = resolve_policy(cfg, stage)
+        policy_path, scales = resolve_policy(cfg, stage), noise_scales(cfg)
         fn, jobs = collect_policy_episode, [
             PolicyEpisodeJob(policy_path=policy_path, task_id=t, index=k, path=path(t, k),
-                             noise_scale=cfg.noise_scale, stop_on_success=cfg.stop_on_success, **common)
+                             noise_scale=float(scales[k % len(scales)]), stop_on_success=cfg.stop_on_success, **common)
             for t in task_ids for k in range(cfg.episodes_per_task)]
     else:
         fn, jobs = collect_expert_episode, [

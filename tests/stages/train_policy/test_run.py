@@ -66,14 +66,18 @@ def test_evaluate_in_both_termination_modes(experiment, termination):
 
 def test_policy_rollouts_keep_every_episode_with_mu_and_beta(experiment):
     exp, _, _ = experiment
-    out = collect(cfg("collect", exp, f"data_dir={exp / 'data'}", "source=policy", "episodes_per_task=1",
-                      "workers=1", "progress=false", "lerobot_export=false"))
-    assert out["collection"]["kept"] == 1
+    out = collect(cfg("collect", exp, f"data_dir={exp / 'data'}", "source=policy", "episodes_per_task=2",
+                      "noise_scale=[1.0,3.0]", "workers=1", "progress=false", "lerobot_export=false"))
+    assert out["collection"]["kept"] == 2
     rec = Manifest(exp).latest("collect", task="tiny", source="policy")
-    (path,) = Manifest(exp).resolve(rec, kind="episodes")
-    ep = read_episode(path)
-    assert ep.meta.source == "policy" and set(ep.step_extras) == {"mu", "beta"}
-    assert ep.step_extras["mu"].shape == (ep.length, 7)
+    eps = [read_episode(p) for p in sorted(Manifest(exp).resolve(rec, kind="episodes"))]
+    for ep in eps:
+        assert ep.meta.source == "policy" and set(ep.step_extras) == {"mu", "beta"}
+        assert ep.step_extras["mu"].shape == (ep.length, 7)
+    # several noise scales are cycled over the episodes (more varied on-policy data)
+    assert [ep.meta.extra["noise_scale"] for ep in eps] == ["1.0", "3.0"]
+    with pytest.raises(ConfigError, match="noise_scale must be a number > 0 or a list"):
+        collect(cfg("collect", exp, "source=policy", "noise_scale=[1.0,0]"))
 
 
 def test_evaluate_without_a_policy_names_the_missing_stage(tmp_path):
