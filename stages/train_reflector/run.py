@@ -14,7 +14,7 @@ import logging
 import time
 from pathlib import Path
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from stages.train_reflector.evaluation import evaluate_held_out, headline
 from stages.train_reflector.training import cross_validate_eta, fit, imagined_copies
@@ -57,12 +57,19 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError("train.batch_size must be at least 2 (half positives, half negatives)")
 
 
+def sees_world_latent(cfg) -> bool:
+    """The reflector `worldsim_latent`: its frame encoder is a world model's autoencoder."""
+    target = OmegaConf.select(cfg, "reflector.frame_encoder._target_", default="") or ""
+    return target.endswith("WorldModelLatentBackbone")
+
+
 def describe_training(cfg) -> str:
     """How the reflector was trained, in words, for the report (kept in the record's metrics)."""
     mine = cfg.train.mine
     return ", ".join([f"{cfg.train.steps} steps", f"label delay {cfg.train.label_delay}",
                       f"mining every {mine.every} > {mine.threshold}" if mine.every else "no mining"]
-                     + (["+ imagined replays"] if cfg.train.with_imagined else []))
+                     + (["+ imagined replays"] if cfg.train.with_imagined else [])
+                     + (["on the world model's latent"] if sees_world_latent(cfg) else []))
 
 
 def run(cfg: DictConfig) -> dict:
@@ -78,12 +85,13 @@ def run(cfg: DictConfig) -> dict:
         key = {k: v for k, v in config.items() if k not in ("imagined", "plots", "eta_folds")}
         # train.with_imagined is named by the world model it imagines with (below), if on
         key["train"] = {k: v for k, v in key["train"].items() if k != "with_imagined"}
-        dreamed = None
-        if cfg.train.with_imagined:  # the world simulator's replays of the training episodes, real labels
+        dreamed, worldsim = None, None
+        if cfg.train.with_imagined or sees_world_latent(cfg):  # the world model it imagines with (or sees through)
             worldsim = resolve_checkpoint(stage, cfg.imagined.worldsim_from, "train_worldsim", contract.name,
                                           cfg.scale.name)
-            dreamed = imagined_copies(cfg, contract, worldsim, episodes)
             key["imagined_from"] = Path(worldsim).parent.name
+        if cfg.train.with_imagined:  # the world simulator's replays of the training episodes, real labels
+            dreamed = imagined_copies(cfg, contract, worldsim, episodes)
         # named by what defines the training and its inputs, not by how it is evaluated, shown or
         # how eta is chosen: changing imagined.*, plots or eta_folds re-evaluates a finished run
         work = work_dir(cfg.experiment_dir, "train_reflector", key, stage.work_inputs())
@@ -92,7 +100,7 @@ def run(cfg: DictConfig) -> dict:
         t0 = time.perf_counter()
         model, model_cfg, meta, history = fit(cfg, contract, episodes + (dreamed or []), work, device, encoder,
                                               {"held_out": [episode_key(p) for p in held],
-                                               "imagined_episodes": len(dreamed or [])})
+                                               "imagined_episodes": len(dreamed or [])}, worldsim=worldsim)
         stage.record.tags["reward"] = model.reward_kind
         if history:
             stage.add_output(plot_history(history, work / "losses.png", f"train_reflector {contract.name}"), kind="plot")
@@ -100,7 +108,7 @@ def run(cfg: DictConfig) -> dict:
         cv = None
         if cfg.eta_folds:
             t2 = time.perf_counter()
-            cv = cross_validate_eta(cfg, contract, train_paths, episodes, work, device, encoder, dreamed)
+            cv = cross_validate_eta(cfg, contract, train_paths, episodes, work, device, encoder, dreamed, worldsim)
             cv["wall_s"] = round(time.perf_counter() - t2, 1)
         # the checkpoint carries the threshold to use it at (evaluate / post_train_loop with eta=null);
         # a cross-validated one is its own folder, so the plain one (and records naming it) stay as they are

@@ -25,9 +25,11 @@ from worldenv_core.training import Phase, Trainer, optimize, per_step, random_sh
 log = logging.getLogger("worldenv.train_reflector")
 
 
-def fit(cfg, contract: TaskContract, episodes: list, work: Path, device, encoder, meta_extra: dict, overall=None):
+def fit(cfg, contract: TaskContract, episodes: list, work: Path, device, encoder, meta_extra: dict, overall=None,
+        worldsim: str | None = None):
     """Train (or resume, or find finished in `work`) a reflector on `episodes`; `overall`: a
-    progress bar over several fits (the cross-validation's) that this one's steps advance.
+    progress bar over several fits (the cross-validation's) that this one's steps advance;
+    `worldsim`: the world model whose autoencoder a `worldsim_latent` frame encoder sees through.
     -> (model on the CPU in eval mode, its config, its meta, the loss history; [] when untrainable)."""
     try:
         sampler = PrefixSampler(episodes, cfg.camera, cfg.frame_stride, cfg.reflector.max_frames,
@@ -35,7 +37,10 @@ def fit(cfg, contract: TaskContract, episodes: list, work: Path, device, encoder
     except ValueError as e:
         raise ConfigError(f"{e}; collect more episodes (policy rollouts give failures)") from None
     model_cfg = OmegaConf.to_container(cfg.reflector, resolve=True)
-    model = instantiate(model_cfg, _convert_="all").to(device)
+    model = instantiate(model_cfg, _convert_="all")
+    if hasattr(model.frame_encoder, "load_autoencoder"):
+        model.frame_encoder.load_autoencoder(worldsim)
+    model = model.to(device)
     meta = {"kind": "reflector", **contract.meta(), "camera": cfg.camera, "frame_stride": cfg.frame_stride,
             "eta": float(cfg.eta), "label_delay": cfg.train.label_delay, "episodes": len(episodes), **meta_extra,
             **sampler.counts()}
@@ -118,7 +123,7 @@ def cross_validation_folds(paths: list[Path], folds: int) -> list[list[int]]:
 
 
 def cross_validate_eta(cfg, contract: TaskContract, paths: list[Path], episodes: list, work: Path, device, encoder,
-                       dreamed: list | None = None) -> dict:
+                       dreamed: list | None = None, worldsim: str | None = None) -> dict:
     """Choose eta by K-fold cross-validation over the training episodes: K reflectors, each trained
     without one fold (in work/folds/, resumable), score the fold they did not see; eta is the one
     with the best termination F1 over all those out-of-fold episodes. `dreamed`: imagined copies
@@ -135,7 +140,7 @@ def cross_validate_eta(cfg, contract: TaskContract, paths: list[Path], episodes:
         log.info("eta cross-validation: fold %d of %d (%d episodes held out of %d)", k + 1, len(folds),
                  len(val_eps), len(episodes))
         model, *_ = fit(cfg, contract, fit_eps, work / "folds" / f"{k + 1}-of-{len(folds)}", device, encoder,
-                        {"held_out": [episode_key(paths[i]) for i in fold]}, overall)
+                        {"held_out": [episode_key(paths[i]) for i in fold]}, overall, worldsim)
         _, fold_curves = evaluate_videos(model, encoder, val_eps, [ep.video(cfg.camera) for ep in val_eps],
                                          cfg.frame_stride, cfg.eta)
         scored += val_eps

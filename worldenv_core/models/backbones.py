@@ -6,6 +6,8 @@
 * `TimmBackbone`: any timm image model (pretrained weights from a local file, never a hub).
 * `HFVisionBackbone`: a Hugging Face transformers vision tower (CLIP, SigLIP, DINOv2 ...) loaded
   with `from_pretrained(<local dir>)`, adapted with LoRA through peft (the paper: rank 32).
+* `WorldModelLatentBackbone`: frames seen through a trained world simulator's frozen autoencoder
+  (the reflector `worldsim_latent`): real and imagined frames are judged in the world model's space.
 """
 
 from __future__ import annotations
@@ -137,3 +139,61 @@ class HFVisionBackbone(_Pooled):
         out = self.model(pixel_values=x)
         pooled = getattr(out, "pooler_output", None)
         return pooled if pooled is not None else out.last_hidden_state.mean(1)
+
+
+class WorldModelLatentBackbone(nn.Module):
+    """A FiLM conv stack with keypoints on the latent of a world simulator's autoencoder (frozen),
+    not on pixels. An imagined frame is decoded from such a latent; a real frame encoded by the
+    same autoencoder loses the same fine detail, so a head trained on real latents sees imagined
+    ones as nearly the same kind of input (the success head "on the world model's latent" of the
+    Dreamer line, here as the reflector's frame encoder). The autoencoder's weights come from a
+    trained world model through `load_autoencoder` (train_reflector does it, from the world model
+    it imagines with) and then travel in the reflector's own checkpoint."""
+
+    def __init__(self, cameras: list[str], cond_dim: int, image_size: int = 128, latent_size: int = 16,
+                 latent_channels: int = 4, ae_widths=(32, 64), ae_patch: int = 4, widths=(64, 128), keypoints: int = 32):
+        super().__init__()
+        from worldenv_core.models.worldsim import Autoencoder
+
+        self.cameras = list(cameras)
+        self.autoencoder = Autoencoder(image_size, latent_size, latent_channels, ae_widths, ae_patch).requires_grad_(False)
+        self.register_buffer("latent_scale", torch.ones(()))
+        chans = [latent_channels, *widths]
+        self.blocks = nn.ModuleList(FiLMConvBlock(a, b, cond_dim) for a, b in zip(chans[:-1], chans[1:]))
+        self.to_kp = nn.Conv2d(widths[-1], keypoints, 1)
+        self.out_dim = len(self.cameras) * keypoints * 2
+        self.loaded_from: str | None = None
+
+    def load_autoencoder(self, worldsim_path: str) -> None:
+        """Copy in the autoencoder (and latent scale) of the world simulator checkpoint at `worldsim_path`."""
+        from worldenv_core.models.checkpoint import CheckpointError, load_checkpoint
+
+        world, _ = load_checkpoint(worldsim_path, "worldsim")
+        try:
+            self.autoencoder.load_state_dict(world.autoencoder.state_dict())
+        except RuntimeError as e:
+            raise CheckpointError(f"the world simulator at {worldsim_path} has another autoencoder than the reflector's "
+                                  f"worldsim_latent encoder was configured with (its image_size, latent_size, "
+                                  f"latent_channels, ae_widths, ae_patch): {e}") from None
+        self.latent_scale.copy_(world.latent_scale)
+        self.loaded_from = str(worldsim_path)
+
+    def train(self, mode: bool = True):
+        super().train(mode)
+        self.autoencoder.eval()  # frozen: always the inference-time encoder
+        return self
+
+    def requires_grad_(self, requires_grad: bool = True):
+        super().requires_grad_(requires_grad)
+        self.autoencoder.requires_grad_(False)  # the world model's, never trained here
+        return self
+
+    def forward(self, images: dict[str, torch.Tensor], cond: torch.Tensor) -> torch.Tensor:
+        feats = []
+        for cam in self.cameras:
+            with torch.no_grad():
+                x = self.autoencoder.encode(images[cam]) / self.latent_scale
+            for block in self.blocks:
+                x = block(x, cond)
+            feats.append(spatial_softmax(self.to_kp(x)))
+        return torch.cat(feats, dim=-1)
