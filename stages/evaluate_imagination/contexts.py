@@ -51,12 +51,11 @@ def mid_episode_frames(success: np.ndarray, length: int, n: int) -> list[int]:
     return sorted({int(round(end * (i + 1) / (n + 1))) for i in range(n)} - {0})
 
 
-def held_out_by_both(manifest, stage, contract: TaskContract, scale: str, worldsim: str, reflector: str,
-                     more_reflectors=()) -> list[Path]:
-    """Collected episodes that neither the world model nor any reflector trained on (their
+def held_out_by_both(manifest, stage, contract: TaskContract, scale: str, worldsim: str, reflector: str) -> list[Path]:
+    """Collected episodes that neither the world model nor the reflector trained on (their
     checkpoints list their held-out episodes)."""
     unseen = None
-    for path in (worldsim, reflector, *more_reflectors):
+    for path in (worldsim, reflector):
         keys = read_config(path)["meta"].get("held_out")
         if keys is None:
             raise ConfigError(f"{path} does not list the episodes it held out; retrain it to pair on held-out episodes")

@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from stages.evaluate_imagination.contexts import PairedContext
+from stages.evaluate_imagination.judges import Judge, store_pair_frames
 from worldenv_core.contract import TaskContract
 from worldenv_core.envs.replay import PairedReplayJob, replay_context
 from worldenv_core.imagination.verdict import (as_judged_by, eta_curve, evaluator_metrics, frame_metrics, imagine, judge,
@@ -35,37 +36,28 @@ class Variant:
     paired: bool = True  # replay its imagined rollouts in the real simulator (else: imagination + closed loop)
 
 
-@dataclass(frozen=True)
-class Judge:
-    """A further reflector judging the same pairs at its own threshold (`more_reflectors`)."""
-    name: str  # its record id (or folder name)
-    path: str
-    eta: float
-    model: object = None  # loaded on the imagination device
-
-
 def pair_variant(cfg, contract: TaskContract, v: Variant, env, contexts: list[PairedContext], encode, reflector: str,
-                 eta: float, device, gifs: int, out: Path, judges: tuple[Judge, ...] = ()) -> dict:
+                 eta: float, device, gifs: int, out: Path, frames_dir: Path | None = None) -> dict:
     """One policy: imagine `rollouts` per context, replay each in the real simulator (if `v.paired`)
-    and pair them; `closed_loop_rollouts` per context of the policy acting on real frames. `judges`
-    score the same imagined and real frames beside the reflector that terminates."""
+    and pair them; `closed_loop_rollouts` per context of the policy acting on real frames. With
+    `frames_dir`, both sides' frames at every check are kept there (further reflectors judge them)."""
     policy, _ = load_checkpoint(v.path, "policy", contract, device=str(device))
     g = torch.Generator().manual_seed(cfg.seed)
     keep, n = sorted({0, *cfg.horizons}), cfg.rollouts
-    full = {c * n for c in range(min(gifs, len(contexts)))}  # the first rollout of the first contexts: GIFs
+    shown = {c * n for c in range(min(gifs, len(contexts)))}  # the first rollout of the first contexts: GIFs
+    full = set(range(len(contexts) * n)) if frames_dir is not None and v.paired else shown  # every check's frame
     runs = []
     for b in range(0, len(contexts), BATCH_CONTEXTS):
         part = contexts[b:b + BATCH_CONTEXTS]
         got = imagine(policy, env, [c.context for c in part], n, encode, g, v.noise_scale, keep,
-                      {r - b * n for r in full if b * n <= r < (b + len(part)) * n}, [j.model for j in judges])
+                      {r - b * n for r in full if b * n <= r < (b + len(part)) * n})
         for r in got:
             r.context += b
         runs += got
     paired = range(n) if v.paired else range(0)
     jobs = [PairedReplayJob(contract, pc.start, actions=tuple(runs[i * n + k].actions for k in paired),
                             keep=tuple(None if i * n + k in full else tuple(keep) for k in paired),
-                            reflector_paths=(reflector, *(j.path for j in judges)),
-                            policy_path=v.path if cfg.closed_loop_rollouts else None,
+                            reflector_path=reflector, policy_path=v.path if cfg.closed_loop_rollouts else None,
                             closed_loop_seeds=tuple(cfg.seed * 1_000_003 + i * 101 + k for k in range(cfg.closed_loop_rollouts)),
                             noise_scale=v.noise_scale, horizon=cfg.horizon)
             for i, pc in enumerate(contexts)]
@@ -84,7 +76,9 @@ def pair_variant(cfg, contract: TaskContract, v: Variant, env, contexts: list[Pa
             row["copy"] = {str(h): m for h, m in frame_metrics({s: rep["frames"][0] for s in rep["frames"]},
                                                                 rep["frames"]).items() if h in cfg.horizons}
             rows.append(row)
-            if i * n + k in full:
+            if frames_dir is not None:
+                store_pair_frames(frames_dir / f"{len(rows) - 1:04d}.npz", run.frames, rep["frames"])
+            if i * n + k in shown:
                 steps = sorted(set(run.frames) & set(rep["frames"]))
                 j = judge(row, eta)
                 verdict = (f"imagined-{'success' if j['imagined_success'] else 'failure'}_"
@@ -135,8 +129,8 @@ def summarise(results: dict, names: list[str], eta: float, horizons: list[int], 
             "real_episodes": sum(r["real_episodes"] for r in results.values() if r),
             "imagined_rollouts": sum(r["imagined_rollouts"] for r in results.values() if r),
             "per_policy": per_policy, "per_task": tasks, "frames": frames,
-            "judges": {j.name: {"eta": j.eta, **headline([as_judged_by(r, i) for r in rows], j.eta)}
-                       for i, j in enumerate(judges) if rows}}
+            "judges": {j.name: {"eta": j.eta, **headline([as_judged_by(r, j.name) for r in rows], j.eta)}
+                       for j in judges if rows}}
 
 
 def write_outputs(stage, summary: dict, results: dict, work: Path) -> None:

@@ -19,11 +19,13 @@ import torch
 from omegaconf import DictConfig
 
 from stages.evaluate_imagination.contexts import build_contexts, held_out_by_both
-from stages.evaluate_imagination.evaluation import Judge, Variant, pair_variant, summarise, write_outputs
+from stages.evaluate_imagination.evaluation import Variant, pair_variant, summarise, write_outputs
+from stages.evaluate_imagination.judges import Judge, judge_pairs
 from stages.report import write_report
 from worldenv_core.imagination.env import build_imagined_env
+from worldenv_core.data.selection import episode_key
 from worldenv_core.manifest import StageRun, config_hash
-from worldenv_core.models.checkpoint import load_checkpoint
+from worldenv_core.models.checkpoint import load_checkpoint, read_config
 from worldenv_core.models.text import InstructionEncoder
 from worldenv_core.rl.termination import check_eta, reflector_eta
 from worldenv_core.stage import (POLICY_SOURCES, ConfigError, positive_int, require_task, resolve_checkpoint, resolved,
@@ -52,6 +54,8 @@ def validate(cfg: DictConfig) -> None:
     bad = [h for h in cfg.horizons if not isinstance(h, int) or h <= 0 or h % cfg.task.chunk]
     if bad:
         raise ConfigError(f"horizons must be positive multiples of the chunk ({cfg.task.chunk}): {bad}")
+    if cfg.more_reflectors and not cfg.store_frames:
+        raise ConfigError("more_reflectors judge the stored frames of the pairs: set store_frames=true")
     if cfg.sampler_noise is not None and not 0 <= cfg.sampler_noise <= 1:
         raise ConfigError(f"sampler_noise must be in [0, 1] (null: the world model's own), got {cfg.sampler_noise}")
     try:
@@ -83,38 +87,37 @@ def run(cfg: DictConfig) -> dict:
                                          cfg.sampler_noise)
         if camera != contract.cameras[0]:
             raise ConfigError(f"the world model imagines {camera!r} but task {contract.name} renders {contract.cameras[0]!r} first")
-        judges = []
-        for ref in cfg.more_reflectors:
-            path = resolve_checkpoint(stage, ref, "train_reflector", contract.name, cfg.scale.name)
-            model, meta = load_checkpoint(path, "reflector", contract, device=str(device))
-            if meta["camera"] != camera:
-                raise ConfigError(f"more_reflectors: {ref} watches {meta['camera']!r}, the world model imagines {camera!r}")
-            judges.append(Judge(Path(path).parent.name, path, reflector_eta(path, None), model))
         # init-state contexts alone need no recorded episode: checkpoint folders are enough
-        held = (held_out_by_both(manifest, stage, contract, cfg.scale.name, worldsim, reflector, [j.path for j in judges])
+        held = (held_out_by_both(manifest, stage, contract, cfg.scale.name, worldsim, reflector)
                 if cfg.contexts.episodes_per_task and cfg.contexts.episode_frames else [])
         contexts = build_contexts(cfg, contract, held)
         log.info("paired replay of %d policies x %d contexts (%d init states, %d mid-episode) x %d rollouts; eta %.2f; "
                  "world model %s, reflector %s", len(variants), len(contexts), sum(c.kind == "init" for c in contexts),
                  sum(c.kind == "episode" for c in contexts), cfg.rollouts, eta, worldsim, reflector)
         # Each policy's pairs are kept as they finish: a killed run re-run skips the policies done.
-        shown = ("policies", "noise_scales", "paired_policies", "progress", "workers", "launcher", "ray_address", "gifs")
+        shown = ("policies", "noise_scales", "paired_policies", "progress", "workers", "launcher", "ray_address", "gifs",
+                 "more_reflectors", "store_frames")  # judges score stored pairs: naming more reuses them
         work = work_dir(cfg.experiment_dir, "evaluate_imagination", {k: v for k, v in config.items() if k not in shown},
                         stage.work_inputs())
         stage.lock(work)
-        results = {}
+        judges = further_reflectors(cfg, stage, contract, camera, contexts)  # after the work dir: not part of its name
+        results, instructions = {}, {c.context.task_id: c.context.instruction for c in contexts}
         for i, v in enumerate(variants):
             path = work / f"{config_hash({'policy': v.path, 'noise': v.noise_scale, 'paired': v.paired})}.json"
+            frames = work / "frames" / path.stem if cfg.store_frames else None
             if path.exists():
                 results[v.name] = json.loads(path.read_text())
                 log.info("%s: paired earlier (%s)", v.name, path)
-                continue
-            torch.manual_seed(cfg.seed)
-            results[v.name] = pair_variant(cfg, contract, v, env, contexts, encode, reflector, eta, device,
-                                           gifs=cfg.gifs if i == 0 else 0, out=work, judges=tuple(judges))
-            tmp = path.with_suffix(".json.tmp")
-            tmp.write_text(json.dumps(results[v.name]))
-            tmp.replace(path)
+            else:
+                torch.manual_seed(cfg.seed)
+                results[v.name] = pair_variant(cfg, contract, v, env, contexts, encode, reflector, eta, device,
+                                               gifs=cfg.gifs if i == 0 else 0, out=work, frames_dir=frames)
+                _write_json(path, results[v.name])
+            if i == 0 and judges and judge_pairs(
+                    results[v.name]["rows"], work / "frames" / path.stem, judges,
+                    lambda j: load_checkpoint(j.path, "reflector", contract, device=str(device))[0],
+                    lambda row: instructions[row["task_id"]], encode):
+                _write_json(path, results[v.name])  # the judges' scores kept: named again, they cost nothing
         summary = summarise(results, [v.name for v in variants], eta, list(cfg.horizons), tuple(judges))
         write_outputs(stage, summary, results, work)
         stage.metrics.update({k: v for k, v in summary.items() if k not in ("per_policy", "per_task", "frames", "judges")})
@@ -122,3 +125,27 @@ def run(cfg: DictConfig) -> dict:
     report = write_report(manifest.root, contract.name)
     log.info("experiment report: %s", report)
     return summary
+
+
+def further_reflectors(cfg, stage, contract, camera: str, contexts) -> list[Judge]:
+    """`more_reflectors`, each at its own eta; refused if it watches another camera or trained on an
+    episode a context starts in."""
+    judges = []
+    episodes = {episode_key(c.start.episode) for c in contexts if c.start.episode}
+    for ref in cfg.more_reflectors:
+        path = resolve_checkpoint(stage, ref, "train_reflector", contract.name, cfg.scale.name)
+        meta = read_config(path)["meta"]
+        if meta["camera"] != camera:
+            raise ConfigError(f"more_reflectors: {ref} watches {meta['camera']!r}, the world model imagines {camera!r}")
+        seen = episodes - set(meta.get("held_out") or [])
+        if seen:
+            raise ConfigError(f"more_reflectors: {ref} trained on episodes the contexts start in ({sorted(seen)[:3]}); "
+                              "train it with the same holdout_every as the reflector")
+        judges.append(Judge(Path(path).parent.name, path, reflector_eta(path, None)))
+    return judges
+
+
+def _write_json(path: Path, data) -> None:
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(data))
+    tmp.replace(path)

@@ -176,15 +176,13 @@ class PolicyEvalJob:
 
 
 _REFLECTORS: dict = {}
-_MAX_REFLECTORS = 4  # a paired replay scores the same frames with a few reflectors at once (their ablation)
 
 
 def cached_reflector(path: str, contract: TaskContract):
     from worldenv_core.models.checkpoint import load_checkpoint
 
     if path not in _REFLECTORS:
-        if len(_REFLECTORS) >= _MAX_REFLECTORS:
-            _REFLECTORS.pop(next(iter(_REFLECTORS)))
+        _REFLECTORS.clear()
         _REFLECTORS[path] = load_checkpoint(path, "reflector", contract)[0]
     return _REFLECTORS[path]
 

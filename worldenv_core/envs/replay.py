@@ -67,27 +67,24 @@ def restore(env: LiberoEnv, start: RealStart, tolerance: float = 1e-3) -> Frame:
 
 
 def execute(env: LiberoEnv, start: RealStart, actions: np.ndarray, every: int, camera: str,
-            scorers=(), keep: frozenset[int] | None = None) -> dict:
+            scorer=None, keep: frozenset[int] | None = None) -> dict:
     """Execute `actions` (T, 7) open loop from `start`. Every `every` steps the camera is rendered
-    (what the imagined env and its reflector see); each of `scorers` (reward models' incremental
-    scorers) scores those frames. Returns the oracle's flags, the first success step, the first
-    scorer's scores (`scores`) and every scorer's (`all_scores`), and the rendered frames at the
-    steps in `keep` (None: all of them)."""
+    (what the imagined env and its reflector see); `scorer` (a reward model's incremental scorer)
+    scores those frames. Returns the oracle's flags, the first success step, the scores and the
+    rendered frames at the steps in `keep` (None: all of them)."""
     t0 = time.perf_counter()
     frame = restore(env, start)
-    flags, frames, all_scores = [frame.success], {}, [[] for _ in scorers]
+    flags, frames, scores = [frame.success], {}, []
 
     def look(t: int) -> None:
         img = env.render([camera])[camera]
         if keep is None or t in keep:
             frames[t] = img
-        if scorers:
+        if scorer is not None:
             import torch
 
-            x = torch.from_numpy(img).permute(2, 0, 1)[None]
-            for scorer, scores in zip(scorers, all_scores):
-                scorer.add(x)
-                scores.append(float(scorer.score()[0]))
+            scorer.add(torch.from_numpy(img).permute(2, 0, 1)[None])
+            scores.append(float(scorer.score()[0]))
 
     look(0)
     error = None
@@ -101,8 +98,7 @@ def execute(env: LiberoEnv, start: RealStart, actions: np.ndarray, every: int, c
         error = f"{type(e).__name__}: {e}"
     hits = np.flatnonzero(flags)
     return {"success": bool(len(hits)) and error is None, "first_success": int(hits[0]) if len(hits) else None,
-            "success_at_end": bool(flags[-1]) and error is None, "steps": len(flags) - 1,
-            "scores": all_scores[0] if all_scores else [], "all_scores": all_scores,
+            "success_at_end": bool(flags[-1]) and error is None, "steps": len(flags) - 1, "scores": scores,
             "frames": frames, "error": error, "seconds": time.perf_counter() - t0}
 
 
@@ -112,7 +108,7 @@ class PairedReplayJob:
     start: RealStart
     actions: tuple  # one (T_i, 7) float32 array per imagined rollout
     keep: tuple  # per rollout, the steps whose real frames come back (None: every checked step)
-    reflector_paths: tuple = ()  # score the real frames with each of these reflectors
+    reflector_path: str | None = None  # score the real frames with this reflector
     # closed loop: the same policy acting on real frames from the same start, Laplace noise seeded per rollout
     policy_path: str | None = None
     closed_loop_seeds: tuple = ()
@@ -137,12 +133,12 @@ def replay_context(job: PairedReplayJob) -> dict:
     c = job.contract
     camera = c.cameras[0]
     env = cached_env(c.suite, job.start.task_id, c.cameras, c.image_size, render=True)
-    reflectors = [cached_reflector(p, c) for p in job.reflector_paths]
-    encoder = _encoder() if reflectors else None
+    reflector = cached_reflector(job.reflector_path, c) if job.reflector_path else None
+    encoder = _encoder() if reflector is not None else None
     replays = []
     for actions, keep in zip(job.actions, job.keep):
-        scorers = [r.scorer([env.instruction], encoder) for r in reflectors]
-        replays.append(execute(env, job.start, np.asarray(actions), c.chunk, camera, scorers,
+        scorer = reflector.scorer([env.instruction], encoder) if reflector is not None else None
+        replays.append(execute(env, job.start, np.asarray(actions), c.chunk, camera, scorer,
                                None if keep is None else frozenset(keep)))
     closed = []
     if job.policy_path and job.closed_loop_seeds:

@@ -38,28 +38,23 @@ class ImaginedRun:
     scores: list[float]  # R at steps 0, K, 2K, ... (the check after each chunk)
     steps: int  # the horizon, rounded up to a chunk
     frames: dict[int, np.ndarray] = field(default_factory=dict)  # step -> (H, W, 3) uint8, chunk boundaries
-    more_scores: list[list[float]] = field(default_factory=list)  # the same checks by each further reflector
 
 
 class _Keeper:
     """A `collect_rollouts` observer: per rollout, the actions it executed, the reflector's score
     after each chunk, and its imagined frames at the steps in `keep` (every chunk boundary for
-    rollouts in `full`). `scorers`: further reward models' incremental scorers of the same
-    rollouts, asked at the same checks (their ablation needs no rollout of its own)."""
+    rollouts in `full`)."""
 
-    def __init__(self, keep: set[int], full: set[int], scorers=()):
-        self.keep, self.full, self.scorers = keep, full, list(scorers)
+    def __init__(self, keep: set[int], full: set[int]):
+        self.keep, self.full = keep, full
         self.actions: list[list[np.ndarray]] = []
         self.scores: list[list[float]] = []
         self.frames: list[dict[int, np.ndarray]] = []
-        self.more: list[list[list[float]]] = []  # per further scorer, per rollout
 
     def on_reset(self, state: StepResult) -> None:
         b = len(state.done)
         self.actions, self.frames = [[] for _ in range(b)], [{} for _ in range(b)]
         self.scores = [[s] for s in state.reward.float().cpu().tolist()]
-        self.more = [[[] for _ in range(b)] for _ in self.scorers]
-        self._score_more(state)
         self._keep_frames(state)
 
     def on_step(self, actions: torch.Tensor, mu, beta, state: StepResult) -> None:
@@ -67,14 +62,7 @@ class _Keeper:
         for r in range(len(acts)):
             self.actions[r].append(acts[r])
             self.scores[r].append(scores[r])
-        self._score_more(state)
         self._keep_frames(state)
-
-    def _score_more(self, state: StepResult) -> None:
-        for scorer, more in zip(self.scorers, self.more):
-            scorer.add(state.frames)
-            for r, x in enumerate(scorer.score().float().cpu().tolist()):
-                more[r].append(x)
 
     def _keep_frames(self, state: StepResult) -> None:
         t = int(state.t[0])  # watched to the horizon: every rollout is at the same step
@@ -85,19 +73,16 @@ class _Keeper:
 
 @torch.no_grad()
 def imagine(policy, env: ImaginedEnv, contexts: list[Context], n_rollouts: int, encoder, generator: torch.Generator,
-            noise_scale: float = 1.0, keep_steps=(), full_rollouts=(), more_reflectors=()) -> list[ImaginedRun]:
+            noise_scale: float = 1.0, keep_steps=(), full_rollouts=()) -> list[ImaginedRun]:
     """`n_rollouts` imagined rollouts per context (context-major, as LOOP draws them), watched to
     the horizon: the env's threshold is lifted while they run, so the rollout that stopping at
     any eta would give is this one cut at its first check above eta (the policy's noise and the
     world model's draws do not depend on which rollouts are done). Frames are kept at
     `keep_steps` (multiples of the chunk) and at every chunk boundary of the rollouts whose index
-    is in `full_rollouts` (side-by-side videos). `more_reflectors` score the same imagined frames
-    at the same checks (`ImaginedRun.more_scores`)."""
+    is in `full_rollouts` (side-by-side videos, further reflectors' verdicts)."""
     from worldenv_core.rl.loop import collect_rollouts
 
-    instructions = [c.instruction for c in contexts for _ in range(n_rollouts)]  # context-major, as LOOP
-    keeper = _Keeper(set(int(s) for s in keep_steps), set(int(r) for r in full_rollouts),
-                     [r.scorer(instructions, env.encoder) for r in more_reflectors])
+    keeper = _Keeper(set(int(s) for s in keep_steps), set(int(r) for r in full_rollouts))
     eta, env.eta = env.eta, 1.0  # R is a probability: never above 1, so nothing stops before the horizon
     try:
         batch = collect_rollouts(policy, env, contexts, n_rollouts, encoder, generator=generator, observer=keeper,
@@ -105,8 +90,7 @@ def imagine(policy, env: ImaginedEnv, contexts: list[Context], n_rollouts: int, 
     finally:
         env.eta = eta
     return [ImaginedRun(context=r // n_rollouts, actions=np.concatenate(keeper.actions[r]).astype(np.float32),
-                        scores=keeper.scores[r], steps=int(batch.t_end[r]), frames=keeper.frames[r],
-                        more_scores=[more[r] for more in keeper.more])
+                        scores=keeper.scores[r], steps=int(batch.t_end[r]), frames=keeper.frames[r])
             for r in range(len(contexts) * n_rollouts)]
 
 
@@ -116,14 +100,21 @@ def pair(run: ImaginedRun, real: dict, task_id: int, context_kind: str, policy: 
     return {"policy": policy, "task_id": task_id, "context": run.context, "context_kind": context_kind,
             "chunk": chunk, "steps": run.steps, "imagined_scores": [round(s, 5) for s in run.scores],
             "real_scores": [round(s, 5) for s in real["scores"]], "real_first_success": real["first_success"],
-            "real_error": real["error"],
-            "more_reflectors": [{"imagined_scores": [round(s, 5) for s in im], "real_scores": [round(s, 5) for s in re]}
-                                for im, re in zip(run.more_scores, real.get("all_scores", [])[1:])]}
+            "real_error": real["error"], "more_reflectors": {}}
 
 
-def as_judged_by(row: dict, i: int) -> dict:
-    """The row as further reflector `i` (of `imagine`'s `more_reflectors`) judges the same pair."""
-    return {**row, **row["more_reflectors"][i]}
+def rescored(reflector, instruction: str, frames: np.ndarray, encoder) -> list[float]:
+    """R after every check of a pair's side, from its frames at the checks (K, H, W, 3) uint8, as
+    the incremental scorer of the imagined env or the replay gave it (same frames, same prefixes)."""
+    video = torch.from_numpy(np.ascontiguousarray(frames)).permute(0, 3, 1, 2)
+    weights = next(reflector.parameters(), None)
+    video = video.to(weights.device) if weights is not None else video
+    return [round(float(s), 5) for s in reflector.score_prefixes(video, instruction, list(range(len(video))), encoder)]
+
+
+def as_judged_by(row: dict, name: str) -> dict:
+    """The row as further reflector `name` judges the same pair (its scores in `more_reflectors`)."""
+    return {**row, **row["more_reflectors"][name]}
 
 
 def judge(row: dict, eta: float) -> dict:

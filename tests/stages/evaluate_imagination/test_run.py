@@ -21,8 +21,6 @@ PAIRED = ["horizon=16", "contexts.init_states=1", "contexts.episodes_per_task=1"
 
 @pytest.fixture(scope="module")
 def paired(tiny_models):
-    # the terminating reflector also named as a further judge: its verdicts on the same pairs must be the same
-    PAIRED.append(f"more_reflectors=[{Manifest(tiny_models).latest('train_reflector', task='tiny').id}]")
     return tiny_models, evaluate_imagination(stage_cfg("evaluate_imagination", tiny_models, *PAIRED))
 
 
@@ -51,26 +49,33 @@ def test_every_imagined_rollout_is_paired_with_its_real_replay(paired):
     assert summary["replay_eta"]["folds"] == 2 and len(summary["replay_eta"]["etas"]) == 2
 
 
-def test_a_further_reflector_judges_the_same_pairs_without_rollouts_of_its_own(paired):
+def test_a_reflector_named_later_judges_the_stored_pairs_without_a_rollout(paired):
     exp, summary = paired
+    # the terminating reflector named again as a further judge: on the same stored frames, the same verdicts
+    rid = Manifest(exp).latest("train_reflector", task="tiny").id
+    judged_run = evaluate_imagination(stage_cfg("evaluate_imagination", exp, *PAIRED, f"more_reflectors=[{rid}]"))
+    assert json.dumps(judged_run["headline"]) == json.dumps(summary["headline"])  # the pairs were reused
     rec = Manifest(exp).latest("evaluate_imagination", task="tiny")
     pairs = json.loads(next(Path(exp, a.path) for a in rec.files("report") if a.path.endswith("pairs.json")).read_text())
-    for r in pairs["sft@1"]["rows"]:  # the same model on the same imagined and real frames, scored beside the env's
-        (more,) = r["more_reflectors"]
+    for r in pairs["sft@1"]["rows"]:
+        (more,) = r["more_reflectors"].values()
         assert more["imagined_scores"] == pytest.approx(r["imagined_scores"], abs=1e-4)
         assert more["real_scores"] == pytest.approx(r["real_scores"], abs=1e-4)
-    (judged,) = summary["judges"].values()
+    (judged,) = judged_run["judges"].values()
     assert judged["eta"] == summary["eta"] and judged["rollouts"] == summary["headline"]["rollouts"]
     for key in ("imagined_success", "real_success", "real_frames_f1", "max_task_gap"):
         assert judged[key] == pytest.approx(summary["headline"][key], nan_ok=True)
-    assert summary["real_episodes"] == rec.metrics["real_episodes"] == 8  # no replay of its own
+    section = (Path(exp) / "report" / "report.md").read_text().split("## Verdict fidelity")[1].split("\n## ")[0]
+    assert "Reflectors judging the same pairs" in section
+    with pytest.raises(ConfigError, match="store_frames=true"):
+        evaluate_imagination(stage_cfg("evaluate_imagination", exp, *PAIRED, f"more_reflectors=[{rid}]", "store_frames=false"))
 
 
 def test_the_report_shows_the_verdict_table_and_the_real_episode_accounting(paired):
     exp, _ = paired
     report = (Path(exp) / "report" / "report.md").read_text()
     section = report.split("## Verdict fidelity: imagined against real")[1].split("\n## ")[0]
-    assert "Reflectors judging the same pairs" in section and "sft@3" in section and "fidelity_imagined_vs_real.png" in section and "fidelity_verdict_vs_eta.png" in section and "![pair](videos/fidelity_" in section
+    assert "sft@3" in section and "fidelity_imagined_vs_real.png" in section and "fidelity_verdict_vs_eta.png" in section and "![pair](videos/fidelity_" in section
     accounting = report.split("## Real-simulator episodes")[1].split("\n## ")[0]
     assert "| evaluate_imagination |" in accounting and "| collect | scale=tiny, source=expert | training data: expert |" in accounting
     assert "Total: training data: " in accounting and "evaluation: 8" in accounting
