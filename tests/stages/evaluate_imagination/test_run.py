@@ -92,6 +92,20 @@ def test_a_rerun_reuses_the_pairs_and_bad_settings_fail_first(paired):
             evaluate_imagination(stage_cfg("evaluate_imagination", exp, *PAIRED, *overrides))
 
 
+def test_checkpoint_folders_alone_serve_init_state_contexts(paired, tmp_path):
+    """Released checkpoints (no manifest, no recorded episode) are enough to measure the verdict
+    from the benchmark's init states."""
+    exp, _ = paired
+    m = Manifest(exp)
+    folder = lambda stage: m.resolve(m.latest(stage, task="tiny"), kind="checkpoint")[0].parent  # noqa: E731
+    out = evaluate_imagination(stage_cfg(
+        "evaluate_imagination", tmp_path / "fresh", *PAIRED, "contexts.episodes_per_task=0", "noise_scales=[1.0]",
+        "closed_loop_rollouts=0", f"worldsim_from={folder('train_worldsim')}", f"reflector_from={folder('train_reflector')}",
+        f"policies=[{folder('train_policy')}]"))
+    assert out["headline"]["rollouts"] == 2 and out["by_context"]["episode"]["rollouts"] == 0
+    assert out["real_episodes"] == 2
+
+
 def test_mid_episode_frames_lie_before_the_first_success():
     success = np.zeros(31, bool)
     success[21:] = True
