@@ -91,11 +91,15 @@ def pair_variant(cfg, contract: TaskContract, v: Variant, env, contexts: list[Pa
             "real_episodes": len(rows) + len(closed)}
 
 
-def headline(rows: list[dict], eta: float) -> dict:
-    """The verdict's agreement at `eta` over `rows`, its worst per-task gap and eta chosen on replays."""
+def max_task_gap(rows: list[dict], eta: float) -> float | None:
+    """The largest |imagined - real| success of any task at `eta`."""
     tasks = per_task(rows, eta)
-    return {**verdict_metrics(rows, eta), "replay_eta": replay_eta(rows),
-            "max_task_gap": max(abs(t["imagined_success"] - t["real_success"]) for t in tasks.values()) if tasks else None}
+    return max(abs(t["imagined_success"] - t["real_success"]) for t in tasks.values()) if tasks else None
+
+
+def judged(rows: list[dict], eta: float) -> dict:
+    """A further reflector's verdicts on the pairs: agreement at its eta, worst task, eta chosen on replays."""
+    return {"eta": eta, **verdict_metrics(rows, eta), "max_task_gap": max_task_gap(rows, eta), "replay_eta": replay_eta(rows)}
 
 
 def summarise(results: dict, names: list[str], eta: float, horizons: list[int], judges: tuple[Judge, ...] = ()) -> dict:
@@ -119,7 +123,7 @@ def summarise(results: dict, names: list[str], eta: float, horizons: list[int], 
                                        for j, what in enumerate(("psnr", "ssim"))}}
     head = per_policy[names[0]]
     return {"headline_policy": names[0], "eta": eta,
-            "headline": {**head, "max_task_gap": max(abs(t["imagined_success"] - t["real_success"]) for t in tasks.values())},
+            "headline": {**head, "max_task_gap": max_task_gap(rows, eta)},
             "by_context": {kind: verdict_metrics([r for r in rows if r["context_kind"] == kind], eta)
                            for kind in ("init", "episode")},
             "replay_eta": replay_eta(rows),  # the lever: eta chosen on replays (2-fold over contexts)
@@ -129,8 +133,7 @@ def summarise(results: dict, names: list[str], eta: float, horizons: list[int], 
             "real_episodes": sum(r["real_episodes"] for r in results.values() if r),
             "imagined_rollouts": sum(r["imagined_rollouts"] for r in results.values() if r),
             "per_policy": per_policy, "per_task": tasks, "frames": frames,
-            "judges": {j.name: {"eta": j.eta, **headline([as_judged_by(r, j.name) for r in rows], j.eta)}
-                       for j in judges if rows}}
+            "judges": {j.name: judged([as_judged_by(r, j.name) for r in rows], j.eta) for j in judges if rows}}
 
 
 def write_outputs(stage, summary: dict, results: dict, work: Path) -> None:
