@@ -72,9 +72,10 @@ def pair_variant(cfg, contract: TaskContract, v: Variant, env, contexts: list[Pa
             run = runs[i * n + k]
             row = pair(run, rep, pc.start.task_id, pc.kind, v.name, contract.chunk)
             row["start"] = pc.start.key
-            row["frames"] = {str(h): m for h, m in frame_metrics(run.frames, rep["frames"]).items() if h in cfg.horizons}
-            row["copy"] = {str(h): m for h, m in frame_metrics({s: rep["frames"][0] for s in rep["frames"]},
-                                                                rep["frames"]).items() if h in cfg.horizons}
+            # only at `horizons`: with store_frames every check's frame is here, and SSIM is not free
+            real_at = {h: rep["frames"][h] for h in cfg.horizons if h in rep["frames"]}
+            row["frames"] = {str(h): m for h, m in frame_metrics(run.frames, real_at).items()}
+            row["copy"] = {str(h): m for h, m in frame_metrics({s: rep["frames"][0] for s in real_at}, real_at).items()}
             rows.append(row)
             if frames_dir is not None:
                 store_pair_frames(frames_dir / f"{len(rows) - 1:04d}.npz", run.frames, rep["frames"])

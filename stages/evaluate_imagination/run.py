@@ -22,8 +22,8 @@ from stages.evaluate_imagination.contexts import build_contexts, held_out_by_bot
 from stages.evaluate_imagination.evaluation import Variant, pair_variant, summarise, write_outputs
 from stages.evaluate_imagination.judges import Judge, judge_pairs
 from stages.report import write_report
-from worldenv_core.imagination.env import build_imagined_env
 from worldenv_core.data.selection import episode_key
+from worldenv_core.imagination.env import build_imagined_env
 from worldenv_core.manifest import StageRun, config_hash
 from worldenv_core.models.checkpoint import load_checkpoint, read_config
 from worldenv_core.models.text import InstructionEncoder
@@ -114,7 +114,7 @@ def run(cfg: DictConfig) -> dict:
                                                gifs=cfg.gifs if i == 0 else 0, out=work, frames_dir=frames)
                 _write_json(path, results[v.name])
             if i == 0 and judges and judge_pairs(
-                    results[v.name]["rows"], work / "frames" / path.stem, judges,
+                    results[v.name]["rows"], frames, judges,
                     lambda j: load_checkpoint(j.path, "reflector", contract, device=str(device))[0],
                     lambda row: instructions[row["task_id"]], encode):
                 _write_json(path, results[v.name])  # the judges' scores kept: named again, they cost nothing
