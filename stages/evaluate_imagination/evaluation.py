@@ -16,7 +16,7 @@ from stages.evaluate_imagination.judges import Judge, store_pair_frames
 from worldenv_core.contract import TaskContract
 from worldenv_core.envs.replay import PairedReplayJob, replay_context
 from worldenv_core.imagination.verdict import (as_judged_by, eta_curve, evaluator_metrics, frame_metrics, imagine, judge,
-                                               pair, per_task, replay_eta, verdict_metrics)
+                                               pair, per_task, replay_eta, terminal_reward, verdict_metrics)
 from worldenv_core.models.checkpoint import load_checkpoint
 from worldenv_core.parallel import run_jobs
 from worldenv_core.report import ReportContext, markdown_table, titled
@@ -89,6 +89,7 @@ def pair_variant(cfg, contract: TaskContract, v: Variant, env, contexts: list[Pa
                               max_frames=len(steps), fps=4)
     said = [any(x > eta for x in r.scores[1:]) for r in runs]  # the imagined verdicts at eta, paired or not
     return {"rows": rows, "closed_loop": closed, "imagined_rollouts": len(runs), "imagined_success": float(np.mean(said)),
+            "imagined_reward": float(np.mean([terminal_reward(r.scores, eta) for r in runs])),
             "real_episodes": len(rows) + len(closed)}
 
 
@@ -112,6 +113,7 @@ def summarise(results: dict, names: list[str], eta: float, horizons: list[int], 
         m = verdict_metrics(results[name]["rows"], eta)
         closed = results[name]["closed_loop"]
         per_policy[name] = {**m, "imagined_success": results[name].get("imagined_success", m.get("imagined_success")),
+                            "imagined_reward": results[name].get("imagined_reward"),
                             "closed_loop_success": float(np.mean(closed)) if closed else None,
                             "real_episodes": results[name]["real_episodes"]}
     rows = results[names[0]]["rows"]
@@ -131,6 +133,8 @@ def summarise(results: dict, names: list[str], eta: float, horizons: list[int], 
             "eta_curve": eta_curve(rows),
             "evaluator": evaluator_metrics(per_policy, "closed_loop_success"),
             "evaluator_paired": evaluator_metrics(per_policy, "real_success"),
+            # mean imagined reward ranks policies even where no imagined rollout reaches eta
+            "evaluator_reward": evaluator_metrics(per_policy, "closed_loop_success", "imagined_reward"),
             "real_episodes": sum(r["real_episodes"] for r in results.values() if r),
             "imagined_rollouts": sum(r["imagined_rollouts"] for r in results.values() if r),
             "per_policy": per_policy, "per_task": tasks, "frames": frames,

@@ -112,6 +112,11 @@ def rescored(reflector, instruction: str, frames: np.ndarray, encoder) -> list[f
     return [round(float(s), 5) for s in reflector.score_prefixes(video, instruction, list(range(len(video))), encoder)]
 
 
+def terminal_reward(scores: list[float], eta: float) -> float:
+    """LOOP's reward of a rollout watched to the horizon: R at the first check above eta, else at the horizon."""
+    return next((s for s in scores[1:] if s > eta), scores[-1])
+
+
 def as_judged_by(row: dict, name: str) -> dict:
     """The row as further reflector `name` judges the same pair (its scores in `more_reflectors`)."""
     return {**row, **row["more_reflectors"][name]}
@@ -210,13 +215,15 @@ def frame_metrics(imagined: dict[int, np.ndarray], real: dict[int, np.ndarray]) 
     return {s: (float(p), float(q)) for s, p, q in zip(steps, psnr(fake, true), ssim(fake, true))}
 
 
-def evaluator_metrics(per_policy: dict[str, dict], real_key: str = "closed_loop_success") -> dict:
+def evaluator_metrics(per_policy: dict[str, dict], real_key: str = "closed_loop_success",
+                      imagined_key: str = "imagined_success") -> dict:
     """The world model as a policy evaluator: rank correlation and mean absolute error between
-    each policy's imagined success and its real success (`real_key`)."""
-    names = [n for n, m in per_policy.items() if m.get(real_key) is not None]
+    each policy's imagined success (or another imagined score, `imagined_key`) and its real
+    success (`real_key`)."""
+    names = [n for n, m in per_policy.items() if m.get(real_key) is not None and m.get(imagined_key) is not None]
     if len(names) < 2:
         return {"policies": len(names), "spearman": float("nan"), "mae": float("nan")}
-    imagined = [per_policy[n]["imagined_success"] for n in names]
+    imagined = [per_policy[n][imagined_key] for n in names]
     real = [per_policy[n][real_key] for n in names]
     return {"policies": len(names), "spearman": spearman(imagined, real),
             "mae": float(np.mean(np.abs(np.subtract(imagined, real))))}
