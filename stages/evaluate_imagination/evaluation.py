@@ -208,6 +208,11 @@ def _sampler(tags: dict) -> str:
     return f"{steps or 'default'}, {'default' if noise is None else f'{noise:g}'}"
 
 
+def _real_frames(m: dict) -> str:
+    """The reflector on the real frames: asked at the imagined verdict's check / stopping on its own."""
+    return f"{_num(m['real_frames_f1'])} / {_num(m.get('real_stop_f1'))}"
+
+
 def _replay_eta(r: dict) -> str:
     if not r.get("etas"):
         return ""
@@ -231,25 +236,27 @@ def section(ctx: ReportContext, limit: int = 8) -> list[str]:
                      _num(h["f1"]) + _mark("f1", h["f1"]), _pct(h["hack_rate"]) + _mark("hack_rate", h["hack_rate"]),
                      f"{_pct(h['imagined_success'])} / {_pct(h['real_success'])}",
                      _pct(h["max_task_gap"]) + _mark("max_task_gap", h["max_task_gap"]), _num(h["timing_error_median"], 0),
-                     _num(h["real_frames_f1"]), _replay_eta(s.get("replay_eta", {})),
-                     f"{_num(ev['spearman'], 2)}{_mark('spearman', ev['spearman'])} / {_pct(ev['mae'])} ({ev['policies']})",
+                     _real_frames(h), _replay_eta(s.get("replay_eta", {})),
+                     f"{_num(ev['spearman'], 2)}{_mark('spearman', ev['spearman'])} / {_pct(ev['mae'])} ({ev['policies']})"
+                     + (f"; by reward {_num(s['evaluator_reward']['spearman'], 2)}" if s.get("evaluator_reward") else ""),
                      s["real_episodes"]])
     lines = ["The imagined verdict (world model + reflector) against the real outcome of the same actions "
              "(`make fidelity`; contexts no model trained on). AUROC: the imagined reward against real success; "
              "F1 and hack rate (imagined successes that fail in reality) at eta; real-frame F1: the reflector on the "
-             "real frames of the same actions (low: the reflector is wrong; high while F1 is low: the world model is); "
+             "real frames of the same actions, asked at the imagined verdict's check and stopping them on its own "
+             "(low: the reflector is wrong; high while F1 is low: the world model is); "
              "eta chosen on replays: each half of the contexts judged at the eta with the best F1 on the other half's pairs; "
              "evaluator: imagined against closed-loop real success over the policies.", "",
              *markdown_table(["world model", "reflector", "eta", "sampler (steps, noise)", "policy", "pairs", "AUROC",
                               "F1", "hack rate", "imagined / real success", "max task gap", "timing error (median steps)",
-                              "real-frame F1", "eta chosen on replays: F1 / hack rate (etas)", "evaluator Spearman / MAE (policies)", "real episodes"], rows)]
+                              "real-frame F1 at the verdict / own stop", "eta chosen on replays: F1 / hack rate (etas)", "evaluator Spearman / MAE (policies)", "real episodes"], rows)]
     newest = runs[-1]
     s = ctx.report_json(newest, "fidelity.json")
     if s:
         lines += ["", f"Newest run (`{newest.id}`), per policy:", "", *markdown_table(
-            ["policy", "imagined success", "paired real success", "closed-loop real success", "AUROC", "F1", "hack rate",
+            ["policy", "imagined success", "imagined reward", "paired real success", "closed-loop real success", "AUROC", "F1", "hack rate",
              "real episodes"],
-            [[n, _pct(m["imagined_success"]), _pct(m.get("real_success")), _pct(m["closed_loop_success"]),
+            [[n, _pct(m["imagined_success"]), _num(m.get("imagined_reward")), _pct(m.get("real_success")), _pct(m["closed_loop_success"]),
               _num(m.get("auroc")), _num(m.get("f1")), _pct(m.get("hack_rate")), m["real_episodes"]]
              for n, m in s["per_policy"].items()])]
         if s.get("judges"):
@@ -257,10 +264,10 @@ def section(ctx: ReportContext, limit: int = 8) -> list[str]:
             lines += ["", "Reflectors judging the same pairs (the headline's imagined rollouts and their real replays; "
                       "the first terminates the imagined rollouts, each judges at its own eta):", "", *markdown_table(
                 ["reflector", "eta", "AUROC", "F1", "hack rate", "imagined / real success", "max task gap",
-                 "real-frame F1", "eta chosen on replays: F1 / hack rate (etas)"],
+                 "real-frame F1 at the verdict / own stop", "eta chosen on replays: F1 / hack rate (etas)"],
                 [[name, _num(m["eta"], 2), _num(m["auroc"]), _num(m["f1"]), _pct(m["hack_rate"]),
                   f"{_pct(m['imagined_success'])} / {_pct(m['real_success'])}", _pct(m["max_task_gap"]),
-                  _num(m["real_frames_f1"]), _replay_eta(m.get("replay_eta", {}))]
+                  _real_frames(m), _replay_eta(m.get("replay_eta", {}))]
                  for name, m in [(newest.tags.get("reflector"), first), *s["judges"].items()]])]
         lines += ["", "By context kind and task (headline policy):", "", *markdown_table(
             ["contexts", "pairs", "imagined success", "real success", "AUROC", "F1"],

@@ -11,6 +11,7 @@ agreement:
 * `verdict_metrics`: AUROC of the imagined reward against the real outcome; precision, recall
   and F1 of imagined success at eta; the hack rate (imagined successes that fail in reality);
   the timing error; the same numbers for the reflector on the *real* frames of the same actions,
+  asked at the imagined verdict's check and as a terminator of its own (`reflector_on_real`),
   which separates the world model's error from the reflector's;
 * `frame_metrics`: PSNR / SSIM of imagined against real frames along the paired trajectories;
 * `evaluator_metrics`: the world model as a policy evaluator (Spearman and MAE between imagined
@@ -148,6 +149,7 @@ def verdict_metrics(rows: list[dict], eta: float) -> dict:
     imagined = binary_metrics([j["imagined_reward"] for j in judged], real, eta)
     on_real = binary_metrics([j["real_reward"] for j in judged], real, eta)
     timing = [j["imagined_steps"] - j["real_first_success"] for j in judged if j["imagined_success"] and j["real_success"]]
+    own = reflector_on_real(rows, eta)
     n_imagined = imagined["tp"] + imagined["fp"]
     return {"rollouts": len(rows), "imagined_success": float(said.mean()), "real_success": float(real.mean()),
             "success_gap": float(said.mean() - real.mean()),
@@ -158,7 +160,20 @@ def verdict_metrics(rows: list[dict], eta: float) -> dict:
             "timing_error_mean": float(np.mean(timing)) if timing else float("nan"),
             "timing_error_median": float(np.median(timing)) if timing else float("nan"),
             "real_frames_auroc": on_real["auroc"], "real_frames_f1": on_real["f1"],
-            "real_frames_precision": on_real["precision"], "real_frames_recall": on_real["recall"]}
+            "real_frames_precision": on_real["precision"], "real_frames_recall": on_real["recall"],
+            **{f"real_stop_{k}": own[k] for k in ("auroc", "f1", "precision", "recall")}}
+
+
+def reflector_on_real(rows: list[dict], eta: float) -> dict:
+    """The reflector terminating the *real* replays as it terminates imagined ones: success when
+    any check's R on the real frames exceeds eta, against the oracle firing by the horizon
+    (AUROC of the largest R). `real_frames_*` asks it at the imagined verdict's check instead,
+    which, when imagination never stops, is the horizon: after an open-loop sequence has
+    passed through success and gone on, the scene there no longer shows it."""
+    truth = [r["real_error"] is None and r["real_first_success"] is not None and r["real_first_success"] <= r["steps"]
+             for r in rows]
+    best = [max(r["real_scores"][1:], default=float("nan")) for r in rows]
+    return binary_metrics(best, np.array(truth, dtype=bool), eta)
 
 
 ETA_GRID = tuple(float(e) for e in np.round(np.arange(0.05, 1.0, 0.05), 2))

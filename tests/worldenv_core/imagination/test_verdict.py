@@ -10,7 +10,7 @@ import torch
 
 from tests.worldenv_core.imagination.test_recording import tiny_policy
 from worldenv_core.imagination.verdict import (evaluator_metrics, frame_metrics, imagine, judge, pair, per_task,
-                                               replay_eta, verdict_metrics)
+                                               replay_eta, terminal_reward, verdict_metrics)
 from worldenv_core.metrics import spearman
 from worldenv_core.rl.loop import collect_rollouts
 
@@ -73,8 +73,19 @@ def test_verdict_metrics_count_hacks_misses_and_timing():
     assert m["timing_error_median"] == 8
     assert m["auroc"] == pytest.approx(5 / 6)  # real successes score 0.9 and 0.2 against 0.7, 0.1, 0.05
     assert m["real_frames_f1"] == 1.0  # the reflector on the real frames gets all of them right
+    assert m["real_stop_f1"] == 1.0 and m["real_stop_auroc"] == 1.0
     assert per_task(rows, 0.5) == {0: {"rollouts": 5, "imagined_success": 0.4, "real_success": 0.4}}
     assert verdict_metrics([], 0.5) == {"rollouts": 0}
+
+
+def test_the_reflector_terminating_real_replays_sees_a_success_the_horizon_no_longer_shows():
+    # the open-loop actions pass through success at step 10 and go on: the last real frame shows
+    # no success, the one after the second chunk did; imagination never stopped
+    rows = [_row([0, 0.1, 0.1, 0.1, 0.1], first=10, real_scores=[0, 0.1, 0.9, 0.3, 0.2]),
+            _row([0, 0.1, 0.1, 0.1, 0.1], first=None, real_scores=[0, 0.1, 0.2, 0.3, 0.2])]
+    m = verdict_metrics(rows, eta=0.5)
+    assert m["real_frames_recall"] == 0.0  # asked at the horizon, where imagination was cut
+    assert m["real_stop_recall"] == 1.0 and m["real_stop_precision"] == 1.0 and m["real_stop_auroc"] == 1.0
 
 
 def test_eta_chosen_on_replays_is_judged_on_the_other_contexts():
@@ -107,6 +118,11 @@ def test_the_policy_evaluator_ranks_policies():
     m = evaluator_metrics(per_policy)
     assert m["policies"] == 3 and m["spearman"] == pytest.approx(1.0) and m["mae"] == pytest.approx(0.1)
     assert math.isnan(evaluator_metrics({"a": per_policy["a"]})["spearman"])
+    # no imagined rollout reached eta: success says nothing, the mean imagined reward still ranks them
+    rewards = {n: {**m, "imagined_success": 0.0, "imagined_reward": m["imagined_success"] / 2} for n, m in per_policy.items()}
+    assert math.isnan(evaluator_metrics(rewards)["spearman"])
+    assert evaluator_metrics(rewards, imagined_key="imagined_reward")["spearman"] == pytest.approx(1.0)
+    assert terminal_reward([0.9, 0.2, 0.6, 0.8], 0.5) == 0.6 and terminal_reward([0.9, 0.2, 0.3], 0.5) == 0.3
     assert spearman([1, 2, 3, 4], [4, 3, 2, 1]) == pytest.approx(-1.0)
     assert spearman([1, 1, 2], [1, 2, 3]) == pytest.approx(math.sqrt(3) / 2)  # ties share their mean rank
     assert math.isnan(spearman([1, 1, 1], [1, 2, 3]))
