@@ -4,6 +4,7 @@ frames in the middle of held-out episodes (held out by both the world model and 
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -12,13 +13,15 @@ import torch
 
 from worldenv_core.contract import TaskContract
 from worldenv_core.data.mcap_io import read_episode
-from worldenv_core.data.selection import collected_episodes, episode_key
+from worldenv_core.data.selection import MissingEpisodesError, collected_episodes, episode_key
 from worldenv_core.envs.recording import cached_env
 from worldenv_core.envs.replay import RealStart, restore
 from worldenv_core.errors import ConfigError
 from worldenv_core.imagination.env import Context
 from worldenv_core.models.checkpoint import read_config
 from worldenv_core.parallel import run_jobs
+
+log = logging.getLogger("worldenv.evaluate_imagination")
 
 
 @dataclass
@@ -61,7 +64,12 @@ def held_out_by_both(manifest, stage, contract: TaskContract, scale: str, worlds
             raise ConfigError(f"{path} does not list the episodes it held out; retrain it to pair on held-out episodes")
         unseen = set(keys) if unseen is None else unseen & set(keys)
     expert_only = bool(read_config(worldsim)["meta"].get("expert_only", False))
-    return [p for p in collected_episodes(manifest, stage, contract.name, scale, expert_only) if episode_key(p) in unseen]
+    try:
+        paths = collected_episodes(manifest, stage, contract.name, scale, expert_only)
+    except MissingEpisodesError:  # released checkpoints beside a re-collected expert set: contexts from the demos
+        log.info("no policy rollouts collected here: mid-episode contexts from the held-out expert demos only")
+        paths = collected_episodes(manifest, stage, contract.name, scale, True)
+    return [p for p in paths if episode_key(p) in unseen]
 
 
 def build_contexts(cfg, contract: TaskContract, held: list[Path]) -> list[PairedContext]:

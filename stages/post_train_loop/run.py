@@ -7,6 +7,10 @@ never the benchmark init states that evaluation uses), runs N imagined rollouts 
 with Laplace-sampled actions until the reflector's R > eta or the horizon, computes RLOO
 advantages from R at t_end, and takes `ppo_epochs` passes of the clipped objective. Every
 `eval.every` iterations (and before the first) the policy is measured in the real simulator.
+
+`env=real` is the reference: the same LOOP from the same contexts with the real simulator as the
+environment and its success oracle as the reward (no world model, no reflector); every rollout
+is a real episode, counted in the record.
 """
 
 from __future__ import annotations
@@ -15,11 +19,13 @@ import json
 import logging
 from pathlib import Path
 
+import numpy as np
 import torch
 from omegaconf import DictConfig
 
 from stages.post_train_loop.evaluation import imagined_success, real_success, record_imagined, with_gap
-from stages.post_train_loop.training import contexts_from_episodes, rl_phase
+from stages.post_train_loop.training import (contexts_from_episodes, imagined_collector, real_collector, real_starts,
+                                             rl_phase)
 from worldenv_core.imagination.env import build_imagined_env
 from worldenv_core.data.selection import collected_episodes
 from worldenv_core.manifest import StageRun
@@ -33,6 +39,10 @@ from worldenv_core.tracking import make_tracker
 from worldenv_core.training import Trainer, pick_device
 
 log = logging.getLogger("worldenv.post_train_loop")
+
+
+# imagined: the method (world simulator + reflector); real: the reference, the real simulator and its oracle
+ENVS = ("imagined", "real")
 
 
 def validate(cfg: DictConfig) -> None:
@@ -57,6 +67,8 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"rl.epsilon (the PPO clip) must be > 0, got {cfg.rl.epsilon}")
     if not (cfg.rl.lr_backbone > 0 and cfg.rl.lr_heads > 0):
         raise ConfigError("rl.lr_backbone and rl.lr_heads must be > 0")
+    if cfg.env not in ENVS:
+        raise ConfigError(f"env must be one of {list(ENVS)}, got {cfg.env!r}")
 
 
 def run(cfg: DictConfig) -> dict:
@@ -64,23 +76,39 @@ def run(cfg: DictConfig) -> dict:
     contract, rl = task_contract(cfg), cfg.rl
     device = pick_device(cfg.device)
     config = resolved(cfg)
+    real = cfg.env == "real"
     tags = {"task": contract.name, "scale": cfg.scale.name, "eta": None if cfg.eta is None else float(cfg.eta),
-            "n_rollouts": int(rl.n_rollouts)}
+            "n_rollouts": int(rl.n_rollouts), "env": cfg.env}
     with StageRun(manifest, "post_train_loop", tags, config) as stage:
         policy_path = resolve_policy(cfg, stage)
-        worldsim_path = resolve_checkpoint(stage, cfg.worldsim_from, "train_worldsim", contract.name, cfg.scale.name)
-        reflector_path = resolve_checkpoint(stage, cfg.reflector_from, "train_reflector", contract.name, cfg.scale.name)
         encoder = InstructionEncoder()
         encode = lambda s: encoder(s).to(device)  # noqa: E731
-        eta = reflector_eta(reflector_path, cfg.eta)
-        stage.record.tags["eta"] = eta  # the threshold used, also when it is the reflector's own
-        env, camera = build_imagined_env(worldsim_path, reflector_path, eta, encode, rl.horizon, rl.sampling_steps, device,
-                                         contract, rl.sampler_noise)
         policy, pmeta = load_checkpoint(policy_path, "policy", contract, device=str(device))
-        if policy.cameras != [camera]:
-            raise ConfigError(f"the policy looks at {policy.cameras}, but the world simulator imagines only {camera!r}")
-        contexts = contexts_from_episodes(collected_episodes(manifest, stage, contract.name, cfg.scale.name,
-                                                             cfg.expert_only), camera)
+        task_ids = set(contract.resolved_task_ids())  # task.task_ids=[...] trains on those tasks' contexts only
+        episodes = collected_episodes(manifest, stage, contract.name, cfg.scale.name, cfg.expert_only)
+        if real:  # the reference: no world model, no reflector; the oracle decides
+            worldsim_path = reflector_path = env = None
+            camera, eta = contract.cameras[0], None
+            stage.record.tags["eta"] = None
+            if policy.cameras != [camera]:
+                raise ConfigError(f"the policy looks at {policy.cameras}; env=real renders only {camera!r} for it")
+            starts, instructions = real_starts(episodes)
+            chosen = [i for i, st in enumerate(starts) if st.task_id in task_ids]
+            starts, instructions = [starts[i] for i in chosen], [instructions[i] for i in chosen]
+            n_contexts = len(starts)
+        else:
+            worldsim_path = resolve_checkpoint(stage, cfg.worldsim_from, "train_worldsim", contract.name, cfg.scale.name)
+            reflector_path = resolve_checkpoint(stage, cfg.reflector_from, "train_reflector", contract.name, cfg.scale.name)
+            eta = reflector_eta(reflector_path, cfg.eta)
+            stage.record.tags["eta"] = eta  # the threshold used, also when it is the reflector's own
+            env, camera = build_imagined_env(worldsim_path, reflector_path, eta, encode, rl.horizon, rl.sampling_steps,
+                                             device, contract, rl.sampler_noise)
+            if policy.cameras != [camera]:
+                raise ConfigError(f"the policy looks at {policy.cameras}, but the world simulator imagines only {camera!r}")
+            contexts = [c for c in contexts_from_episodes(episodes, camera) if c.task_id in task_ids]
+            n_contexts = len(contexts)
+        if not n_contexts:
+            raise ConfigError(f"no collected episode of task(s) {sorted(task_ids)} to start rollouts from")
         # The work dir (what resume finds) is named by what defines the training and by its inputs,
         # not by how it is evaluated or shown: changing eval.* or progress continues the same run.
         work = work_dir(cfg.experiment_dir, "post_train_loop",
@@ -94,25 +122,29 @@ def run(cfg: DictConfig) -> dict:
                           log_every=1, checkpoint_every=1, desc="post_train_loop", progress=cfg.progress,
                           postfix=("mean_reward", "reflector_success_rate", "approx_kl"),
                           tracker=make_tracker(cfg.get("logger"), work, "post_train_loop", contract.name, config))
-        log.info("post-training %s for %d iterations: %d contexts x %d rollouts each, eta %.2f, on %s; work dir %s",
-                 policy_path, rl.iterations, rl.contexts_per_iteration, rl.n_rollouts, eta, device, work)
+        log.info("post-training %s for %d iterations in the %s environment: %d contexts x %d rollouts each, eta %s, "
+                 "on %s; work dir %s", policy_path, rl.iterations, cfg.env, rl.contexts_per_iteration, rl.n_rollouts,
+                 "oracle" if real else f"{eta:.2f}", device, work)
 
         def evaluate(done: int, checkpoint: Path | None) -> dict:
             """Imagined success on fixed contexts, real success, a few recorded imagined rollouts."""
             values = {}
-            if cfg.eval.imagined_contexts:
+            if cfg.eval.imagined_contexts and not real:
                 values.update(imagined_success(policy, env, contexts, cfg.eval.imagined_contexts,
                                                cfg.eval.imagined_rollouts, encode, cfg.seed))
             if cfg.eval.every:
                 values["real_success"] = real_success(str(checkpoint or policy_path), contract, cfg.eval.init_states,
                                                       cfg.eval.workers, cfg.progress)
-            if cfg.eval.record_contexts:
+            if cfg.eval.record_contexts and not real:
                 record_imagined(policy, env, contexts, cfg.eval.record_contexts, contract, encode, camera,
                                 work / "imagined" / f"iter_{done:04d}", {**provenance, "iteration": str(done)}, cfg.seed)
             log.info("evaluation at iteration %d: %s", done, json.dumps(with_gap(values)))
             return values
 
-        trainer.fit([rl_phase(policy, optimizer, env, contexts, rl, encode, cfg.seed)], evaluate=evaluate,
+        collect = (real_collector(contract, starts, instructions, rl.n_rollouts, encode, rl.horizon,
+                                  read_config(policy_path)["model"], pmeta, work, cfg.eval.workers, cfg.progress)
+                   if real else imagined_collector(env, contexts, rl.n_rollouts, encode))
+        trainer.fit([rl_phase(policy, optimizer, collect, n_contexts, rl, cfg.seed)], evaluate=evaluate,
                     evaluate_every=cfg.eval.every)
         final = trainer.save_final(work / "policy", iteration=rl.iterations)
         trainer.finish(stage, final, f"post_train_loop {contract.name}", plot="training.png")
@@ -125,8 +157,12 @@ def run(cfg: DictConfig) -> dict:
                               "device": str(device), "final_mean_reward": history[-1].get("mean_reward"),
                               "real_success": by_step("real_success"), "imagined_reward": by_step("imagined_reward"),
                               "imagined_success": by_step("imagined_success"),
-                              # monitoring only: the real simulator never feeds the training
+                              # evaluation: monitoring only, never a training signal
                               "real_episodes": len(by_step("real_success")) * cfg.eval.init_states
-                              * len(contract.resolved_task_ids())})
+                              * len(contract.resolved_task_ids()),
+                              # the reference trains on real episodes: what the imagined route is compared at
+                              "train_real_episodes": rl.iterations * rl.contexts_per_iteration * rl.n_rollouts if real else 0,
+                              "kept_groups": float(np.mean([h["kept_groups"] for h in history if "kept_groups" in h]
+                                                           or [float("nan")]))})
         log.info("post-trained policy saved to %s; metrics %s", final, json.dumps(stage.metrics))
     return stage.metrics

@@ -1,18 +1,28 @@
-"""How LOOP trains in imagination: the imagined environment (world simulator + reflector reward),
-the contexts rollouts start from, and one RL iteration as the Trainer's step."""
+"""How LOOP trains: the contexts rollouts start from, the two environments a rollout can run in
+(the imagined one: world simulator + reflector reward; the real simulator: the oracle as reward,
+the reference), and one RL iteration as the Trainer's step."""
 
 from __future__ import annotations
 
 import copy
+import itertools
+import shutil
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
 
 from worldenv_core.data.mcap_io import read_episode
+from worldenv_core.envs.replay import RealStart
 from worldenv_core.imagination.env import Context
-from worldenv_core.rl.loop import collect_rollouts, ppo_update
+from worldenv_core.models.checkpoint import save_model
+from worldenv_core.rl.loop import RolloutBatch, collect_rollouts, informative_groups, ppo_update, select
+from worldenv_core.rl.real_rollouts import collect_real_rollouts
 from worldenv_core.training import Phase, per_step, step_seed
+
+# (frozen behaviour policy, the iteration's context indices, its generator) -> the rollouts
+Collect = Callable[[torch.nn.Module, list[int], torch.Generator], RolloutBatch]
 
 
 def contexts_from_episodes(paths: list[Path], camera: str) -> list[Context]:
@@ -20,18 +30,51 @@ def contexts_from_episodes(paths: list[Path], camera: str) -> list[Context]:
     return [Context.from_episode(read_episode(p, cameras=[camera]), camera) for p in paths]
 
 
-def rl_phase(policy, optimizer, env, contexts: list[Context], rl, encode, seed: int) -> Phase:
+def real_starts(paths: list[Path]) -> tuple[list[RealStart], list[str]]:
+    """The same contexts in the real simulator: each episode's first state (its scene rebuilt
+    from its seed), and its instruction."""
+    metas = [read_episode(p, cameras=[]).meta for p in paths]
+    return [RealStart(task_id=m.task_id, episode=str(p), frame=0) for p, m in zip(paths, metas)], [m.instruction for m in metas]
+
+
+def imagined_collector(env, contexts: list[Context], n_rollouts: int, encode) -> Collect:
+    """Rollouts in the imagined environment (the method)."""
+    return lambda behaviour, picks, g: collect_rollouts(behaviour, env, [contexts[i] for i in picks], n_rollouts,
+                                                        encode, generator=g)
+
+
+def real_collector(contract, starts: list[RealStart], instructions: list[str], n_rollouts: int, encode,
+                   horizon: int, model_config: dict, meta: dict, folder: Path, workers, progress: bool) -> Collect:
+    """Rollouts in the real simulator (`env=real`, the reference): the behaviour policy is saved
+    under `folder` for the worker processes, one folder per iteration (a worker that ran the
+    previous iteration must not reuse its cached weights), the previous one removed."""
+    count = itertools.count()
+
+    def collect(behaviour, picks, g):
+        for old in folder.glob("behaviour_*"):
+            shutil.rmtree(old, ignore_errors=True)
+        path = save_model(folder / f"behaviour_{next(count)}", copy.deepcopy(behaviour).cpu(), model_config, meta)
+        return collect_real_rollouts(behaviour, path, contract, [starts[i] for i in picks],
+                                     [instructions[i] for i in picks], n_rollouts, encode, horizon, g, workers=workers,
+                                     progress=progress)
+    return collect
+
+
+def rl_phase(policy, optimizer, collect: Collect, n_contexts: int, rl, seed: int) -> Phase:
     """One iteration = one step: N rollouts from each of a few contexts by the frozen behaviour
-    policy (Algorithm 1 line 3), then `ppo_epochs` passes of PPO on their RLOO advantages. An
-    iteration's contexts, rollouts and minibatches are drawn from its own seed."""
+    policy (Algorithm 1 line 3), then `ppo_epochs` passes of PPO on their RLOO advantages, over
+    the groups whose verdicts disagree (`rl.filter_groups`; none: no update this iteration).
+    An iteration's contexts, rollouts and minibatches are drawn from its own seed."""
     def step(g: torch.Generator) -> dict:
         t0 = time.perf_counter()
-        picks = torch.randint(len(contexts), (rl.contexts_per_iteration,), generator=g).tolist()
+        picks = torch.randint(n_contexts, (rl.contexts_per_iteration,), generator=g).tolist()
         behaviour = copy.deepcopy(policy).eval()
-        batch = collect_rollouts(behaviour, env, [contexts[i] for i in picks], rl.n_rollouts, encode, generator=g)
-        stats = ppo_update(policy, optimizer, batch, rl.ppo_epochs, rl.epsilon, rl.minibatch, generator=g)
+        batch = collect(behaviour, picks, g)
+        keep = informative_groups(batch, rl.n_rollouts) if rl.filter_groups else torch.ones_like(batch.by_reflector)
+        stats = (ppo_update(policy, optimizer, select(batch, keep), rl.ppo_epochs, rl.epsilon, rl.minibatch, generator=g)
+                 if keep.any() else {})
         return {"mean_reward": float(batch.rewards.mean()), "reflector_success_rate": float(batch.by_reflector.float().mean()),
-                "episode_length": float(batch.t_end.float().mean()), "mean_beta": batch.beta_mean, **stats,
-                "seconds": time.perf_counter() - t0}
+                "episode_length": float(batch.t_end.float().mean()), "mean_beta": batch.beta_mean,
+                "kept_groups": float(keep.float().mean()), **stats, "seconds": time.perf_counter() - t0}
     return Phase("rl", rl.iterations, lambda start: per_step(lambda it: torch.Generator().manual_seed(step_seed(seed, it)),
                                                              start), step)

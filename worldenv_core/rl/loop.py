@@ -103,6 +103,24 @@ def collect_rollouts(policy, env, contexts: list, n_rollouts: int, encoder,
                         beta_mean=float(torch.stack(betas).mean()))
 
 
+def informative_groups(batch: RolloutBatch, n_rollouts: int) -> torch.Tensor:
+    """(R,) bool: the rollouts of contexts whose N verdicts (success by the reward model's eta, or
+    the oracle) do not all agree. Where all N agree, the advantages only spread the reward
+    model's score below (or above) eta, which is noise, not a verdict: peers that gain with
+    world-model RL drop such groups rather than spend PPO steps on them."""
+    verdicts = batch.by_reflector.view(-1, n_rollouts)
+    mixed = verdicts.any(-1) & ~verdicts.all(-1)
+    return mixed.repeat_interleave(n_rollouts)
+
+
+def select(batch: RolloutBatch, keep: torch.Tensor) -> RolloutBatch:
+    """The rollouts where `keep` (R,) is true (their advantages as computed on the whole group)."""
+    return RolloutBatch(frames=batch.frames[keep], proprio=batch.proprio[keep], instruction=batch.instruction[keep],
+                        actions=batch.actions[keep], logp_old=batch.logp_old[keep], mask=batch.mask[keep],
+                        rewards=batch.rewards[keep], advantages=batch.advantages[keep], t_end=batch.t_end[keep],
+                        by_reflector=batch.by_reflector[keep], beta_mean=batch.beta_mean)
+
+
 def ppo_update(policy, optimizer, batch: RolloutBatch, epochs: int, epsilon: float, minibatch: int,
                generator: torch.Generator | None = None) -> dict:
     """K epochs of eq. 5 over the batch's rollouts in minibatches of whole rollouts; the loss of

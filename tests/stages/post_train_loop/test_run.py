@@ -1,5 +1,6 @@
 """post_train_loop on the tiny task: SFT policy, world simulator and reflector from the manifest,
 LOOP iterations in imagination, real-simulator evaluation, resume, and bad settings."""
+import json
 from pathlib import Path
 
 import pytest
@@ -15,7 +16,8 @@ from worldenv_core.stage import ConfigError
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
 LOOP = ["expert_only=true", "rl.iterations=2", "rl.contexts_per_iteration=1", "rl.n_rollouts=2", "rl.horizon=16",
-        "rl.minibatch=2", "eval.every=2", "eval.init_states=1", "eval.workers=1", "progress=false"]
+        "rl.minibatch=2", "eval.every=2", "eval.init_states=1", "eval.workers=1", "progress=false",
+        "rl.filter_groups=false"]  # the tiny models' verdicts all agree: every group would be dropped
 
 cfg = stage_cfg
 
@@ -121,3 +123,24 @@ def test_reflector_also_trains_on_the_world_simulators_replays_of_its_episodes(t
     assert metas[1]["imagined_episodes"] == metas[0]["episodes"] == metas[1]["episodes"] // 2
     assert metas[1]["positive_frames"] == 2 * metas[0]["positive_frames"]  # the imagined copies keep the labels
     assert metas[0]["imagined_episodes"] == 0
+
+
+def test_the_real_simulator_reference_trains_on_real_rollouts_rewarded_by_the_oracle(trained):
+    """env=real: the same LOOP with the real simulator and its oracle; no world model or reflector
+    is used, and every rollout is counted as a real episode."""
+    exp, _ = trained
+    metrics = post_train_loop(cfg("post_train_loop", exp, *LOOP, "env=real", "rl.iterations=1", "eval.every=0",
+                                  "rl.filter_groups=true"))
+    rec = Manifest(exp).latest("post_train_loop", task="tiny", env="real")
+    used = {Manifest(exp).get(i).stage for i in rec.inputs}
+    assert "train_worldsim" not in used and "train_reflector" not in used and "collect" in used
+    assert metrics["train_real_episodes"] == 2  # 1 context x 2 rollouts
+    # 16 steps from an episode's start never reach the goal: both rollouts fail, the oracle's reward
+    # is 0 for both, the group agrees and is dropped: no PPO step, the policy unchanged
+    assert rec.tags["eta"] is None and metrics["final_mean_reward"] == 0.0 and metrics["kept_groups"] == 0.0
+    history = json.loads((work := Path(next(p for p in Manifest(exp).resolve(rec) if p.name == "training.json")).parent)
+                         .joinpath("training.json").read_text())
+    assert all("approx_kl" not in h for h in history if "mean_reward" in h)
+    assert len(list(work.glob("behaviour_*"))) == 1  # the behaviour policy the workers loaded, the latest only
+    with pytest.raises(ConfigError, match="env must be one of"):
+        post_train_loop(cfg("post_train_loop", exp, *LOOP, "env=simulated"))

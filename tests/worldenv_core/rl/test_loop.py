@@ -99,3 +99,22 @@ def test_a_tiny_loop_improves_a_synthetic_reward():
         rewards.append(batch.rewards.mean().item())
         ppo_update(policy, opt, batch, epochs=2, epsilon=0.1, minibatch=8, generator=torch.Generator().manual_seed(it))
     assert sum(rewards[-3:]) / 3 > sum(rewards[:3]) / 3 + 0.15, rewards
+
+
+def test_groups_whose_verdicts_all_agree_are_dropped_before_ppo():
+    from worldenv_core.rl.loop import RolloutBatch, informative_groups, select
+
+    # 3 contexts x 2 rollouts: both succeed, one of two succeeds, both fail (scores just below eta)
+    success = torch.tensor([True, True, True, False, False, False])
+    rewards = torch.tensor([0.9, 0.8, 0.7, 0.2, 0.3, 0.1])
+    r = len(rewards)
+    batch = RolloutBatch(frames=torch.zeros(r, 2, 3, 4, 4, dtype=torch.uint8), proprio=torch.zeros(r, 2, 7),
+                         instruction=torch.arange(r).float()[:, None], actions=torch.zeros(r, 2, 4, 7),
+                         logp_old=torch.zeros(r, 2, 4), mask=torch.ones(r, 2, 4), rewards=rewards,
+                         advantages=rloo_advantages(rewards.view(3, 2)).reshape(-1), t_end=torch.full((r,), 8),
+                         by_reflector=success, beta_mean=0.0)
+    keep = informative_groups(batch, 2)
+    assert keep.tolist() == [False, False, True, True, False, False]
+    kept = select(batch, keep)
+    assert kept.instruction[:, 0].tolist() == [2.0, 3.0] and torch.allclose(kept.advantages, torch.tensor([0.5, -0.5]))
+    assert kept.frames.shape[0] == kept.mask.shape[0] == 2

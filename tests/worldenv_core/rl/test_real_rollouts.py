@@ -1,0 +1,69 @@
+"""LOOP's rollouts in the real simulator (the `env=real` reference): the reward is the oracle's
+verdict on exactly the actions the batch holds, the batch has the shapes PPO expects, and the
+same seed draws the same rollouts."""
+import numpy as np
+import pytest
+import torch
+
+from tests.worldenv_core.imagination.test_recording import tiny_policy
+from worldenv_core.data.mcap_io import read_episode
+from worldenv_core.envs.recording import cached_env
+from worldenv_core.envs.replay import RealStart, execute
+from worldenv_core.models.checkpoint import save_model
+from worldenv_core.rl.loop import ppo_update
+from worldenv_core.rl.real_rollouts import collect_real_rollouts
+
+pytestmark = pytest.mark.sim
+POLICY_CONFIG = {"_target_": "worldenv_core.models.policy.LaplacePolicy", "cameras": ["agentview"], "chunk": 4,
+                 "hidden": 32, "instruction_dim": 16,
+                 "backbone": {"_target_": "worldenv_core.models.backbones.SmallConvBackbone", "cameras": ["agentview"],
+                              "cond_dim": 16, "widths": [8, 8], "keypoints": 4}}
+
+
+def encoder(texts):
+    return torch.stack([torch.full((16,), float(len(t))) for t in texts])
+
+
+@pytest.fixture(scope="module")
+def demo(demo_experiment):
+    path = sorted((demo_experiment / "data").rglob("*.mcap"))[0]
+    return path, read_episode(path)
+
+
+def test_real_rollouts_are_rewarded_by_the_oracle_on_the_actions_they_hold(demo, contract, tmp_path):
+    path, ep = demo
+    c = contract(chunk=4, image_size=32)
+    policy = tiny_policy()
+    saved = save_model(tmp_path / "behaviour", policy, POLICY_CONFIG, {"kind": "policy"})
+    first = int(np.flatnonzero(ep.success)[0])
+    # two contexts: the episode's start (the policy is untrained: no success in 12 steps) and two
+    # steps before its recorded success (the object already on its way: the oracle fires soon)
+    starts = [RealStart(task_id=ep.meta.task_id, episode=str(path), frame=0),
+              RealStart(task_id=ep.meta.task_id, episode=str(path), frame=first - 2)]
+    batch = collect_real_rollouts(policy, saved, c, starts, [ep.meta.instruction] * 2, 2, encoder, horizon=10,
+                                  generator=torch.Generator().manual_seed(0), workers=1)
+    assert batch.frames.shape[:2] == batch.actions.shape[:2] == batch.mask.shape[:2] == (4, 3)  # 10 steps: 3 chunks of 4
+    assert batch.actions.shape[2:] == (4, 7) and batch.frames.dtype == torch.uint8
+    assert batch.rewards.tolist()[:2] == [0.0, 0.0] and batch.by_reflector.tolist()[:2] == [False, False]
+    assert batch.t_end.tolist()[:2] == [12, 12]  # the horizon rounded up to whole chunks, as in imagination
+    assert batch.rewards.tolist()[2:] == [1.0, 1.0]
+    assert torch.equal(batch.advantages, torch.zeros(4))  # every group agrees: RLOO gives no signal
+    assert torch.equal(batch.t_end, batch.mask.sum((1, 2)).long())
+    env = cached_env(c.suite, ep.meta.task_id, c.cameras, c.image_size)
+    for i in range(4):
+        # the actions the batch holds, executed again, give the reward and the observations it holds
+        steps = int(batch.t_end[i])
+        actions = policy.unnormalize_actions(batch.actions[i]).flatten(0, 1)[:steps].detach().numpy()
+        out = execute(env, starts[i // 2], actions, every=4, camera="agentview")
+        assert out["success"] == bool(batch.rewards[i])
+        assert out["success"] is False or out["first_success"] == steps  # it stopped at the first success
+        for k in range(int((batch.mask[i, :, 0] > 0).sum())):
+            diff = np.abs(out["frames"][4 * k].astype(int) - batch.frames[i, k].permute(1, 2, 0).numpy())
+            assert diff.max() <= 1
+    assert torch.isfinite(batch.logp_old).all() and (batch.logp_old[batch.mask == 0] == 0).all()
+    again = collect_real_rollouts(policy, saved, c, starts, [ep.meta.instruction] * 2, 2, encoder, horizon=10,
+                                  generator=torch.Generator().manual_seed(0), workers=1)
+    assert torch.equal(again.actions, batch.actions) and torch.equal(again.frames, batch.frames)
+    # the behaviour log-probabilities are the policy's own: PPO's first ratio is exactly 1
+    stats = ppo_update(policy, torch.optim.SGD(policy.parameters(), lr=0.0), batch, 1, 0.1, 4)
+    assert stats["ratio_mean"] == pytest.approx(1.0, abs=1e-5) and stats["approx_kl"] == pytest.approx(0.0, abs=1e-6)

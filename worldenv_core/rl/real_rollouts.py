@@ -1,0 +1,141 @@
+"""LOOP's rollouts in the real simulator: the reference that says what RL can do at all.
+
+The same Algorithm 1 as in imagination (the frozen behaviour policy, Laplace-sampled chunks, N
+rollouts per context, RLOO on the reward at termination), with the real LIBERO simulator as the
+environment and its success oracle as the reward: a rollout ends at the first success (reward
+1) or at the horizon (reward 0). Run side by side with the imagined route at an equal number of
+rollouts, it separates "RL cannot lift this policy at this scale" from "the imagined
+environment misleads it"; at an equal number of real episodes it says whether the world model
+is worth having.
+
+Each rollout is one real episode and one worker job (`real_rollout`): the behaviour policy is
+saved once per iteration and loaded by the workers; they return what PPO needs (the observation
+each chunk was chosen from and the sampled chunk, in the policy's normalised space), and the
+behaviour log-probabilities are computed here in one batch, so PPO's first ratio is exactly 1.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from worldenv_core.contract import TaskContract
+from worldenv_core.envs.replay import RealStart
+from worldenv_core.rl.loop import RolloutBatch, rloo_advantages
+
+
+@dataclass(frozen=True)
+class RealRolloutJob:
+    contract: TaskContract
+    start: RealStart
+    policy_path: str  # the behaviour policy of this iteration (a checkpoint folder)
+    seed: int  # the Laplace draws of this rollout
+    instruction: np.ndarray  # (D,) its embedding, as the trainer encodes it (the same input on both sides)
+    horizon: int  # steps, rounded up to whole chunks (as the imagined env does)
+    noise_scale: float = 1.0
+    index: int = 0  # its place in the batch
+
+
+@functools.lru_cache(maxsize=1)
+def _policy(path: str, contract: TaskContract):
+    """The behaviour policy, loaded once per worker and iteration."""
+    from worldenv_core.models.checkpoint import load_checkpoint
+
+    return load_checkpoint(path, "policy", contract)[0].eval()
+
+
+@torch.no_grad()
+def real_rollout(job: RealRolloutJob) -> dict:
+    """One rollout from the context's start: a chunk is chosen from the camera rendered at its
+    boundary, executed step by step, and the rollout stops at the oracle's first success or
+    once `horizon` steps are done. A physics failure ends it as a failure, with the error."""
+    from worldenv_core.envs.recording import cached_env
+    from worldenv_core.envs.replay import restore
+    from worldenv_core.models.laplace import laplace_sample
+
+    c = job.contract
+    camera = c.cameras[0]
+    env = cached_env(c.suite, job.start.task_id, c.cameras, c.image_size, render=True)
+    policy = _policy(job.policy_path, c)
+    lang = torch.as_tensor(job.instruction, dtype=torch.float32)[None]
+    g = torch.Generator().manual_seed(int(job.seed))
+    frames, proprio, chunks, executed = [], [], [], []
+    first_success, error = None, None
+    try:
+        frame = restore(env, job.start)
+        t = 0
+        while t < job.horizon and first_success is None:
+            image = env.render([camera])[camera]
+            mu, beta = policy({camera: torch.from_numpy(image).permute(2, 0, 1)[None]},
+                              torch.as_tensor(frame.proprio, dtype=torch.float32)[None], lang)
+            a = laplace_sample(mu, beta, g, job.noise_scale)
+            frames.append(image), proprio.append(frame.proprio.astype(np.float32)), chunks.append(a[0].numpy())
+            n = 0
+            for action in policy.unnormalize_actions(a)[0].numpy():
+                frame = env.step(action)
+                t, n = t + 1, n + 1
+                if frame.success:
+                    first_success = t
+                    break
+            executed.append(n)
+    except Exception as e:  # noqa: BLE001 - a physics failure is a failed rollout, not a dead worker
+        error = f"{type(e).__name__}: {e}"
+        frames, proprio, chunks = frames[:len(executed)], proprio[:len(executed)], chunks[:len(executed)]
+    return {"index": job.index, "start": job.start, "seed": job.seed, "frames": frames, "proprio": proprio, "actions": chunks,
+            "executed": executed, "first_success": first_success, "error": error}
+
+
+def collect_real_rollouts(behaviour, behaviour_path: str | Path, contract: TaskContract, starts: list[RealStart],
+                          instructions: list[str], n_rollouts: int, encoder, horizon: int,
+                          generator: torch.Generator, workers: int | None = None, launcher: str = "local",
+                          ray_address: str | None = None, progress: bool = False,
+                          noise_scale: float = 1.0) -> RolloutBatch:
+    """N real rollouts per context (context-major, as `collect_rollouts` draws them) by the
+    behaviour policy saved at `behaviour_path` (whose weights are `behaviour`'s), as a
+    `RolloutBatch`: reward 1 for a success, 0 otherwise; `by_reflector` marks the successes."""
+    from worldenv_core.models.laplace import laplace_log_prob
+    from worldenv_core.parallel import run_jobs
+
+    if n_rollouts < 2:
+        raise ValueError(f"RLOO needs at least 2 rollouts per context, got N={n_rollouts}")
+    chunk = contract.chunk
+    horizon = -(-int(horizon) // chunk) * chunk
+    seeds = torch.randint(2**31 - 1, (len(starts) * n_rollouts,), generator=generator).tolist()
+    lang = encoder([instructions[i // n_rollouts] for i in range(len(seeds))]).float().cpu()
+    jobs = [RealRolloutJob(contract, starts[i // n_rollouts], str(behaviour_path), s, lang[i].numpy(), horizon, noise_scale,
+                           index=i) for i, s in enumerate(seeds)]
+    done = {r["index"]: r for r in run_jobs(real_rollout, jobs, workers=workers, launcher=launcher, desc="real rollouts",
+                                           ray_address=ray_address, progress=progress, unit="rollout")}
+    runs = [done[i] for i in range(len(seeds))]
+    n_chunks = max(1, max(len(r["actions"]) for r in runs))
+    rows = len(runs)
+    h, w = contract.image_size, contract.image_size
+    frames = torch.zeros(rows, n_chunks, 3, h, w, dtype=torch.uint8)
+    proprio = torch.zeros(rows, n_chunks, len(runs[0]["proprio"][0]) if runs[0]["proprio"] else 7)
+    actions = torch.zeros(rows, n_chunks, chunk, contract.action_dim)
+    mask = torch.zeros(rows, n_chunks, chunk)
+    for i, r in enumerate(runs):
+        for k, (img, prop, act, n) in enumerate(zip(r["frames"], r["proprio"], r["actions"], r["executed"])):
+            frames[i, k] = torch.from_numpy(img).permute(2, 0, 1)
+            proprio[i, k], actions[i, k] = torch.from_numpy(prop), torch.from_numpy(act)
+            mask[i, k, :n] = 1
+    dev = next(behaviour.parameters()).device  # the batch lives where PPO trains
+    frames, proprio, actions, mask, lang = (x.to(dev) for x in (frames, proprio, actions, mask, lang))
+    live = mask[:, :, 0] > 0
+    rr, cc = live.nonzero(as_tuple=True)
+    logp = torch.zeros(rows, n_chunks, chunk, device=dev)
+    with torch.no_grad():
+        camera = behaviour.cameras[0]
+        mu, beta = behaviour.eval()({camera: frames[rr, cc]}, proprio[rr, cc], lang[rr])
+        logp[rr, cc] = laplace_log_prob(actions[rr, cc], mu, beta)
+        betas = beta.mean() if len(rr) else torch.tensor(float("nan"))
+    success = torch.tensor([r["error"] is None and r["first_success"] is not None for r in runs], device=dev)
+    rewards = success.float()
+    return RolloutBatch(frames=frames, proprio=proprio, instruction=lang, actions=actions, logp_old=logp * mask,
+                        mask=mask, rewards=rewards,
+                        advantages=rloo_advantages(rewards.view(len(starts), n_rollouts)).reshape(-1),
+                        t_end=mask.sum((1, 2)).long(), by_reflector=success, beta_mean=float(betas))
