@@ -77,6 +77,10 @@ def real_episodes_section(ctx: ReportContext) -> list[str]:
         if n is not None:
             key = "training data" if r.stage == "collect" else "evaluation"
             totals[key] = totals.get(key, 0) + n
+        if r.metrics.get("train_real_episodes"):  # post_train_loop env=real: the reference trains on them
+            rows.append([r.stage, rows[-1][1], "training rollouts (the real-simulator reference)",
+                         r.metrics["train_real_episodes"]])
+            totals["training data"] = totals.get("training data", 0) + r.metrics["train_real_episodes"]
     if not rows:
         return []
     total = ", ".join(f"{k}: {v}" for k, v in sorted(totals.items(), reverse=True))

@@ -80,7 +80,7 @@ def run(cfg: DictConfig) -> dict:
                     for ref in cfg.policies for n in cfg.noise_scales]
         variants = [Variant(v.name, v.path, v.noise_scale, paired=i < cfg.paired_policies) for i, v in enumerate(variants)]
         stage.record.tags.update({"eta": eta, "sampling_steps": cfg.sampling_steps, "sampler_noise": cfg.sampler_noise,
-                                  "worldsim": Path(worldsim).parent.name, "reflector": Path(reflector).parent.name})
+                                  "worldsim": _name(worldsim), "reflector": _name(reflector)})
         encoder = InstructionEncoder()
         encode = lambda s: encoder(s).to(device)  # noqa: E731
         env, camera = build_imagined_env(worldsim, reflector, eta, encode, cfg.horizon, cfg.sampling_steps, device, contract,
@@ -141,8 +141,15 @@ def further_reflectors(cfg, stage, contract, camera: str, contexts) -> list[Judg
         if seen:
             raise ConfigError(f"more_reflectors: {ref} trained on episodes the contexts start in ({sorted(seen)[:3]}); "
                               "train it with the same holdout_every as the reflector")
-        judges.append(Judge(Path(path).parent.name, path, reflector_eta(path, None)))
+        judges.append(Judge(_name(path), path, reflector_eta(path, None)))
     return judges
+
+
+def _name(checkpoint: str) -> str:
+    """A checkpoint as the report names it: its folder with the one above (a run's work dir and
+    `reflector`, or a released `libero_goal/reflector_imagined`)."""
+    p = Path(checkpoint)
+    return f"{p.parent.name}/{p.name}"
 
 
 def _write_json(path: Path, data) -> None:

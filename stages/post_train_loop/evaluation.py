@@ -100,11 +100,11 @@ def section(ctx: ReportContext, limit: int = 6) -> list[str]:
     for r in runs:
         h = ctx.history(r)
         curve = ", ".join(f"{k}: {100 * v:.0f} %" for k, v in r.metrics.get("real_success", {}).items()) or "not run"
-        rows.append([r.tags.get("eta"), r.tags.get("n_rollouts"), r.metrics.get("iterations"),
+        rows.append([r.tags.get("env", "imagined"), r.tags.get("eta"), r.tags.get("n_rollouts"), r.metrics.get("iterations"),
                      ctx.input_tags(r, "train_worldsim").get("data", "?"), ctx.input_tags(r, "train_reflector").get("data", "?"),
                      _span(h, "mean_reward"), _span(h, "reflector_success_rate"), _span(h, "episode_length"),
                      imagined_span(r), curve, f"{r.wall_time_s:.0f}"])
-    lines = markdown_table(["eta", "N", "iterations", "world model data", "reflector data",
+    lines = markdown_table(["env", "eta", "N", "iterations", "world model data", "reflector data",
                             "imagined reward (first 5 -> last 5 it.)", "reflector success rate", "episode length",
                             "fixed contexts: imagined reward, success (SFT -> last)", "real success by iteration",
                             "wall s"], rows)
@@ -114,4 +114,38 @@ def section(ctx: ReportContext, limit: int = 6) -> list[str]:
         name = short_run(str(shown.files("plot")[0].path))
         plot_history(history, ctx.out / "post_training.png", f"post_train_loop {name}")
         lines += ["", f"![post-training curves of `{name}`](post_training.png)"]
+    routes = [r for r in runs if len(r.metrics.get("real_success", {})) > 1]
+    if {r.tags.get("env", "imagined") for r in routes} == {"imagined", "real"}:
+        plot_routes(ctx, routes, ctx.out / "routes.png")
+        lines += ["", "The imagined route against the real-simulator reference (`env=real`: the same LOOP with the "
+                  "oracle as reward), by iteration and by the real-simulator episodes each consumed (collections "
+                  "it used, plus the reference's own rollouts; evaluation episodes not counted):", "",
+                  "![imagined vs real route](routes.png)"]
     return titled("Post-training (LOOP in imagination)", lines)
+
+
+def real_episodes_used(ctx: ReportContext, run: StageRecord) -> tuple[int, int]:
+    """(real episodes of the collections the run used, real episodes per iteration of its own)."""
+    collected = sum(ctx.by_id[i].metrics.get("real_episodes") or 0 for i in run.inputs
+                    if i in ctx.by_id and ctx.by_id[i].stage == "collect")
+    per_iteration = (run.metrics.get("train_real_episodes") or 0) / max(1, run.metrics.get("iterations") or 1)
+    return collected, int(per_iteration)
+
+
+def plot_routes(ctx: ReportContext, runs: list[StageRecord], path: Path) -> Path:
+    """Real success against the iteration, and against the real episodes consumed, for each run."""
+    from worldenv_core.viz import figure, save_figure
+
+    fig, axes = figure(ncols=2, figsize=(10, 3.8))
+    for r in runs:
+        curve = sorted((int(k), v) for k, v in r.metrics["real_success"].items())
+        collected, per_it = real_episodes_used(ctx, r)
+        label = f"{r.tags.get('env', 'imagined')} eta {r.tags.get('eta')} N {r.tags.get('n_rollouts')}"
+        style = "-o" if r.tags.get("env") == "real" else "-s"
+        axes[0].plot([i for i, _ in curve], [100 * v for _, v in curve], style, label=label, ms=3)
+        axes[1].plot([collected + per_it * i for i, _ in curve], [100 * v for _, v in curve], style, label=label, ms=3)
+    axes[0].set(xlabel="iteration", ylabel="real success (%)")
+    axes[1].set(xlabel="real-simulator episodes consumed", ylabel="real success (%)")
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    return save_figure(fig, path)

@@ -117,6 +117,28 @@ def test_the_report_is_the_sections_in_order_then_wall_time(tmp_path):
         assert "\n".join(section(ctx)) in text
 
 
+def test_the_real_simulator_reference_is_plotted_beside_the_imagined_route_and_its_episodes_counted(tmp_path):
+    from stages.report import real_episodes_section
+
+    m = _experiment(tmp_path)
+    with StageRun(m, "post_train_loop", {**TAGS, "eta": None, "n_rollouts": 4, "env": "real"}, {}) as s:
+        s.inputs.append(m.latest("collect").id)  # its contexts: 3 real episodes collected
+        _write(tmp_path / "real" / "training.json", [{"step": 0, "real_success": 0.2}, {"step": 1, "mean_reward": 0.5}])
+        s.add_output(_write(tmp_path / "real" / "training.png", "png"), kind="plot")
+        s.metrics.update(iterations=2, real_success={"0": 0.2, "2": 0.6}, train_real_episodes=16)
+    ctx = ReportContext(m, "tiny", tmp_path / "report")
+    ctx.out.mkdir()
+    real, imagined = m.latest("post_train_loop", env="real"), m.find("post_train_loop")[0]
+    assert post_train_loop.real_episodes_used(ctx, real) == (3, 8)  # + 8 per iteration of its own
+    assert post_train_loop.real_episodes_used(ctx, imagined) == (0, 0)
+    text = "\n".join(post_train_loop.section(ctx))
+    assert "| real | None | 4 | 2 |" in text and "| imagined | 0.5 | 4 | 2 |" in text
+    assert "![imagined vs real route](routes.png)" in text and (ctx.out / "routes.png").stat().st_size > 1000
+    accounting = "\n".join(real_episodes_section(ctx))
+    assert "| training rollouts (the real-simulator reference) | 16 |" in accounting
+    assert "Total: training data: 19, evaluation: 14." in accounting
+
+
 def test_sections_are_empty_on_an_experiment_without_their_stage(tmp_path):
     ctx = ReportContext(Manifest(tmp_path), "tiny", tmp_path)
     assert [s(ctx) for s in SECTIONS[1:]] == [[], [], [], [], []]
