@@ -4,23 +4,23 @@ imagined rollouts recorded as MCAP, and the table and curves of the post-trainin
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from worldenv_core.contract import TaskContract
 from worldenv_core.envs.collection import PolicyEvalJob, evaluate_policy_task
+from worldenv_core.envs.replay import PairedReplayJob, RealStart, replay_context
 from worldenv_core.envs.tasks import get_task
 from worldenv_core.manifest import StageRecord
 from worldenv_core.parallel import run_jobs
 from worldenv_core.report import ReportContext, markdown_table, short_run, titled
 from worldenv_core.imagination.env import Context
 from worldenv_core.imagination.recording import record_imagined_rollouts, write_imagined_rollouts
-from worldenv_core.rl.loop import collect_rollouts
+from worldenv_core.imagination.verdict import imagine, pair, terminal_reward, verdict_metrics
 from worldenv_core.viz import plot_history
-
-# Measured at evaluations (the tracker's "eval/" group); the rest of an iteration's entry is training.
-EVAL_KEYS = ("real_success", "imagined_reward", "imagined_success", "imagined_real_gap")
 
 
 def with_gap(entry: dict) -> dict:
@@ -31,30 +31,56 @@ def with_gap(entry: dict) -> dict:
     return entry
 
 
-def _fixed_picks(contexts: list[Context], n: int, seed: int) -> tuple[list[Context], torch.Generator]:
-    """`n` contexts and the noise generator, the same at every evaluation point."""
+def _fixed_picks(contexts: list, n: int, seed: int) -> tuple[list[int], torch.Generator]:
+    """The indices of `n` contexts and the noise generator, the same at every evaluation point."""
     g = torch.Generator().manual_seed(seed)
-    picks = torch.randperm(len(contexts), generator=g)[:min(n, len(contexts))].tolist()
-    return [contexts[i] for i in picks], g
+    return torch.randperm(len(contexts), generator=g)[:min(n, len(contexts))].tolist(), g
 
 
-def imagined_success(policy, env, contexts: list[Context], n_contexts: int, n_rollouts: int, encoder, seed: int) -> dict:
+@dataclass(frozen=True)
+class PairedCheck:
+    """Replay the imagined rollouts of the first `contexts` evaluation contexts in the real
+    simulator (`starts`: where each training context starts there)."""
+    contract: TaskContract
+    starts: list[RealStart]
+    contexts: int
+    workers: int | None = None
+    progress: bool = False
+
+
+def imagined_success(policy, env, contexts: list[Context], n_contexts: int, n_rollouts: int, encoder, seed: int,
+                     paired: PairedCheck | None = None) -> dict:
     """The policy in imagination on a fixed set of contexts with fixed noise: the same rollouts'
     worth of randomness for the SFT and every later policy, so the numbers are comparable and
     show whether post-training improved the objective it optimises (mean reward, reflector
-    success rate), whatever the real simulator says."""
-    picked, g = _fixed_picks(contexts, n_contexts, seed + 7_777)
-    with torch.no_grad():
-        batch = collect_rollouts(policy, env, picked, n_rollouts, encoder, generator=g)
-    return {"imagined_reward": float(batch.rewards.mean()),
-            "imagined_success": float(batch.by_reflector.float().mean())}
+    success rate), whatever the real simulator says. With `paired`, the actions of some of those
+    rollouts are executed in the real simulator too: how often the policy's own imagined
+    successes are real (the hack rate; real episodes, monitoring only)."""
+    picks, g = _fixed_picks(contexts, n_contexts, seed + 7_777)
+    runs = imagine(policy, env, [contexts[i] for i in picks], n_rollouts, encoder, g)  # LOOP's verdicts, read off
+    out = {"imagined_reward": float(np.mean([terminal_reward(r.scores, env.eta) for r in runs])),
+           "imagined_success": float(np.mean([any(s > env.eta for s in r.scores[1:]) for r in runs]))}
+    if paired is None or not paired.contexts:
+        return out
+    chosen = picks[:paired.contexts]
+    jobs = [PairedReplayJob(paired.contract, paired.starts[i], actions=tuple(runs[k * n_rollouts + j].actions
+                                                                             for j in range(n_rollouts)),
+                            keep=((),) * n_rollouts) for k, i in enumerate(chosen)]
+    real = {r["start"].key: r for r in run_jobs(replay_context, jobs, workers=paired.workers, desc="paired replay",
+                                                 progress=paired.progress, unit="ctx")}
+    rows = [pair(runs[k * n_rollouts + j], real[paired.starts[i].key]["replays"][j], paired.starts[i].task_id, "episode",
+                 "policy", env.chunk) for k, i in enumerate(chosen) for j in range(n_rollouts)]
+    m = verdict_metrics(rows, env.eta)
+    return {**out, "paired_hack_rate": m["hack_rate"], "paired_f1": m["f1"], "paired_real_success": m["real_success"],
+            "paired_imagined_success": m["imagined_success"], "paired_episodes": len(rows)}
 
 
 def record_imagined(policy, env, contexts: list[Context], n_contexts: int, contract: TaskContract, encoder,
                     camera: str, out_dir: Path, extra: dict, seed: int) -> list[Path]:
     """A few imagined rollouts of the policy, every frame, written as MCAP episodes (the same
     fixed contexts and noise at every evaluation, so the files show what training changed)."""
-    picked, g = _fixed_picks(contexts, n_contexts, seed + 9_999)
+    picks, g = _fixed_picks(contexts, n_contexts, seed + 9_999)
+    picked = [contexts[i] for i in picks]
     names = {t: get_task(contract.suite, t).name for t in {c.task_id for c in picked}}
     rollouts = record_imagined_rollouts(policy, env, picked, 2, encoder, contract.suite, names, camera, extra=extra,
                                         generator=g, fps=contract.control_freq)

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from stages.post_train_loop.evaluation import imagined_success, real_success, record_imagined, with_gap
+from stages.post_train_loop.evaluation import PairedCheck, imagined_success, real_success, record_imagined, with_gap
 from stages.post_train_loop.training import (contexts_from_episodes, imagined_collector, real_collector, real_starts,
                                              rl_phase)
 from worldenv_core.imagination.env import build_imagined_env
@@ -53,6 +53,7 @@ def validate(cfg: DictConfig) -> None:
     positive_int(cfg, "eval.init_states")
     positive_int(cfg, "eval.imagined_contexts", allow_zero=True)
     positive_int(cfg, "eval.record_contexts", allow_zero=True)
+    positive_int(cfg, "eval.paired_contexts", allow_zero=True)
     if cfg.eval.imagined_contexts and cfg.eval.imagined_rollouts < 2:
         raise ConfigError(f"eval.imagined_rollouts must be at least 2, got {cfg.eval.imagined_rollouts}")
     if not isinstance(cfg.rl.n_rollouts, int) or cfg.rl.n_rollouts < 2:
@@ -105,7 +106,9 @@ def run(cfg: DictConfig) -> dict:
                                              device, contract, rl.sampler_noise)
             if policy.cameras != [camera]:
                 raise ConfigError(f"the policy looks at {policy.cameras}, but the world simulator imagines only {camera!r}")
-            contexts = [c for c in contexts_from_episodes(episodes, camera) if c.task_id in task_ids]
+            pairs = [(c, st) for c, st in zip(contexts_from_episodes(episodes, camera), real_starts(episodes)[0])
+                     if c.task_id in task_ids]
+            contexts, starts = [c for c, _ in pairs], [st for _, st in pairs]  # starts: paired replay at evaluations
             n_contexts = len(contexts)
         if not n_contexts:
             raise ConfigError(f"no collected episode of task(s) {sorted(task_ids)} to start rollouts from")
@@ -130,8 +133,10 @@ def run(cfg: DictConfig) -> dict:
             """Imagined success on fixed contexts, real success, a few recorded imagined rollouts."""
             values = {}
             if cfg.eval.imagined_contexts and not real:
+                paired = (PairedCheck(contract, starts, cfg.eval.paired_contexts, cfg.eval.workers, cfg.progress)
+                          if cfg.eval.every else None)  # beside every real evaluation
                 values.update(imagined_success(policy, env, contexts, cfg.eval.imagined_contexts,
-                                               cfg.eval.imagined_rollouts, encode, cfg.seed))
+                                               cfg.eval.imagined_rollouts, encode, cfg.seed, paired))
             if cfg.eval.every:
                 values["real_success"] = real_success(str(checkpoint or policy_path), contract, cfg.eval.init_states,
                                                       cfg.eval.workers, cfg.progress)
@@ -159,7 +164,8 @@ def run(cfg: DictConfig) -> dict:
                               "imagined_success": by_step("imagined_success"),
                               # evaluation: monitoring only, never a training signal
                               "real_episodes": len(by_step("real_success")) * cfg.eval.init_states
-                              * len(contract.resolved_task_ids()),
+                              * len(contract.resolved_task_ids()) + sum(h.get("paired_episodes", 0) for h in history),
+                              "paired_hack_rate": by_step("paired_hack_rate"),
                               # the reference trains on real episodes: what the imagined route is compared at
                               "train_real_episodes": rl.iterations * rl.contexts_per_iteration * rl.n_rollouts if real else 0,
                               "kept_groups": float(np.mean([h["kept_groups"] for h in history if "kept_groups" in h]

@@ -77,6 +77,8 @@ def execute(env: LiberoEnv, start: RealStart, actions: np.ndarray, every: int, c
     flags, frames, scores = [frame.success], {}, []
 
     def look(t: int) -> None:
+        if scorer is None and keep is not None and t not in keep:
+            return  # nobody looks at this frame: skip the render (the dominant cost)
         img = env.render([camera])[camera]
         if keep is None or t in keep:
             frames[t] = img
