@@ -140,6 +140,14 @@ def section(ctx: ReportContext, limit: int = 6) -> list[str]:
         name = short_run(str(shown.files("plot")[0].path))
         plot_history(history, ctx.out / "post_training.png", f"post_train_loop {name}")
         lines += ["", f"![post-training curves of `{name}`](post_training.png)"]
+    sweeps = [r.tags["sweep"] for r in ctx.find("post_train_loop") if r.tags.get("sweep")]
+    if sweeps:  # the newest sweep over eta and N
+        from stages.post_train_loop.sweep import plot_summary, summary_rows, summary_table
+
+        rows = summary_rows([r for r in ctx.find("post_train_loop") if r.tags.get("sweep") == sweeps[-1]])
+        plot_summary(rows, ctx.out / "sweep.png")
+        lines += ["", f"Sweep `{sweeps[-1]}` over eta and N (`-m eta=... rl.n_rollouts=...`; each measure at the SFT "
+                  "policy and after the last iteration):", "", *summary_table(rows), "", "![sweep](sweep.png)"]
     routes = [r for r in runs if len(r.metrics.get("real_success", {})) > 1]
     if {r.tags.get("env", "imagined") for r in routes} == {"imagined", "real"}:
         plot_routes(ctx, routes, ctx.out / "routes.png")

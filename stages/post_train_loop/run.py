@@ -24,6 +24,7 @@ import torch
 from omegaconf import DictConfig
 
 from stages.post_train_loop.evaluation import PairedCheck, imagined_success, real_success, record_imagined, with_gap
+from stages.post_train_loop.sweep import sweep_dir, write_summary
 from stages.post_train_loop.training import (contexts_from_episodes, imagined_collector, real_collector, real_starts,
                                              rl_phase)
 from worldenv_core.imagination.env import build_imagined_env
@@ -77,9 +78,9 @@ def run(cfg: DictConfig) -> dict:
     contract, rl = task_contract(cfg), cfg.rl
     device = pick_device(cfg.device)
     config = resolved(cfg)
-    real = cfg.env == "real"
+    real, sweep = cfg.env == "real", sweep_dir()
     tags = {"task": contract.name, "scale": cfg.scale.name, "eta": None if cfg.eta is None else float(cfg.eta),
-            "n_rollouts": int(rl.n_rollouts), "env": cfg.env}
+            "n_rollouts": int(rl.n_rollouts), "env": cfg.env, **({"sweep": sweep.name} if sweep else {})}
     with StageRun(manifest, "post_train_loop", tags, config) as stage:
         policy_path = resolve_policy(cfg, stage)
         encoder = InstructionEncoder()
@@ -171,4 +172,7 @@ def run(cfg: DictConfig) -> dict:
                               "kept_groups": float(np.mean([h["kept_groups"] for h in history if "kept_groups" in h]
                                                            or [float("nan")]))})
         log.info("post-trained policy saved to %s; metrics %s", final, json.dumps(stage.metrics))
+    if sweep:  # the sweep's summary so far, beside its runs (the report draws it again)
+        log.info("sweep summary: %s", write_summary(sweep, manifest.find("post_train_loop", task=contract.name,
+                                                                         sweep=sweep.name)))
     return stage.metrics

@@ -139,6 +139,25 @@ def test_the_real_simulator_reference_is_plotted_beside_the_imagined_route_and_i
     assert "Total: training data: 19, evaluation: 14." in accounting
 
 
+def test_the_newest_sweep_over_eta_and_n_is_summarised(tmp_path):
+    m = Manifest(tmp_path)
+    for sweep, eta, n, last in (("old", 0.5, 4, 0.9), ("new", 0.7, 8, 0.3), ("new", 0.3, 8, 0.5), ("new", 0.3, 4, 0.4)):
+        with StageRun(m, "post_train_loop", {**TAGS, "eta": eta, "n_rollouts": n, "env": "imagined", "sweep": sweep}, {}) as s:
+            s.metrics.update(iterations=2, real_success={"0": 0.2, "2": last}, imagined_reward={"0": 0.1, "2": 0.3},
+                             imagined_success={"0": 0.0, "2": 0.5},
+                             paired_hack_rate={"0": 0.5, "2": 0.25}, kept_groups=0.5)
+    ctx = ReportContext(m, "tiny", tmp_path / "report")
+    ctx.out.mkdir()
+    text = "\n".join(post_train_loop.section(ctx))
+    sweep = text.split("Sweep `new`")[1]
+    rows = [line for line in sweep.splitlines() if line.startswith("| 0.")]
+    assert rows == [  # by N, then eta; SFT -> last
+        f"| 0.3 | 4 | 2 | 20.0 % -> 40.0 % | 0.100 -> 0.300 | 50.0 % -> 25.0 % | 50.0 % | `{m.find('post_train_loop')[3].id}` |",
+        f"| 0.3 | 8 | 2 | 20.0 % -> 50.0 % | 0.100 -> 0.300 | 50.0 % -> 25.0 % | 50.0 % | `{m.find('post_train_loop')[2].id}` |",
+        f"| 0.7 | 8 | 2 | 20.0 % -> 30.0 % | 0.100 -> 0.300 | 50.0 % -> 25.0 % | 50.0 % | `{m.find('post_train_loop')[1].id}` |"]
+    assert "90.0 %" not in sweep and (ctx.out / "sweep.png").exists()
+
+
 def test_sections_are_empty_on_an_experiment_without_their_stage(tmp_path):
     ctx = ReportContext(Manifest(tmp_path), "tiny", tmp_path)
     assert [s(ctx) for s in SECTIONS[1:]] == [[], [], [], [], []]

@@ -88,6 +88,15 @@ def test_multirun_sweep_over_eta_on_the_basic_launcher(trained):
     assert {r.tags["eta"] for r in m.find("post_train_loop", task="tiny", n_rollouts=2)} >= {0.3, 0.7}
     sweep = sorted((Path(exp) / "multirun").glob("post_train_loop-*/*"))
     assert [p.name for p in sweep if p.is_dir()] == ["0_eta0.3_n2", "1_eta0.7_n2"]
+    # the sweep's summary beside its runs: one row per point, in eta order, with its plot
+    folder = sweep[0].parent
+    runs = m.find("post_train_loop", task="tiny", sweep=folder.name)
+    assert sorted(r.tags["eta"] for r in runs) == [0.3, 0.7]
+    rows = json.loads((folder / "sweep_summary.json").read_text())
+    assert [(r["eta"], r["n_rollouts"]) for r in rows] == [(0.3, 2), (0.7, 2)]
+    assert all(r["imagined_reward_first"] is not None for r in rows)  # measured before training and at the end
+    table = (folder / "sweep_summary.md").read_text()
+    assert table.count("\n| 0.") == 2 and (folder / "sweep_summary.png").stat().st_size > 1000
 
 
 def test_evaluate_the_post_trained_policy_by_name(trained):
