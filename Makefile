@@ -12,7 +12,7 @@ export MUJOCO_GL ?= egl
 export HF_HUB_OFFLINE := 1
 export TOKENIZERS_PARALLELISM := false
 
-.PHONY: setup test test-fast faults smoke pipeline fidelity bench expert-table tensorboard clean
+.PHONY: setup test test-fast faults smoke pipeline suites eval-release fidelity bench expert-table tensorboard clean
 
 setup: $(STAMP)
 
@@ -72,6 +72,23 @@ FIDELITY_POLICIES ?= sft
 FIDELITY_NOISE ?= 1.0,0.5,2.0,3.0,4.0
 fidelity: setup
 	$(PY) -m stages.evaluate_imagination $(STAGE_ARGS) 'policies=[$(FIDELITY_POLICIES)]' 'noise_scales=[$(FIDELITY_NOISE)]'
+
+# The pipeline on the three suites of issue 23, then the cross-suite table (outputs/suites/suites.md).
+SUITES ?= libero_goal libero_object libero_spatial
+suites: setup
+	for t in $(SUITES); do $(MAKE) pipeline TASK=$$t SCALE=$(SCALE) EXP=outputs/$$t-$(SCALE) || exit 1; done
+	$(PY) -m stages.suites outputs/suites $(foreach t,$(SUITES),$(t)=outputs/$(t)-$(SCALE))
+
+# A suite's Table 1 row from its released checkpoints (checkpoints/<suite>/sft and post_trained, where
+# released), without retraining: every termination on the first RELEASE_INIT benchmark init states.
+SUITE ?= libero_goal
+RELEASE_INIT ?= 50
+eval-release: setup
+	for policy in sft post_trained; do \
+	  if [ -d checkpoints/$(SUITE)/$$policy ]; then \
+	    $(PY) -m stages.evaluate +task=$(SUITE) experiment_dir=outputs/release-$(SUITE) \
+	      policy_from=checkpoints/$(SUITE)/$$policy policy_label=$$policy termination=all init_states=$(RELEASE_INIT) || exit 1; \
+	  else echo "checkpoints/$(SUITE)/$$policy: not released"; fi; done
 
 # The same pipeline on the tiny task and scale: minutes, proves the plumbing.
 smoke:

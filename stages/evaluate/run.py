@@ -33,6 +33,8 @@ def validate(cfg: DictConfig) -> None:
     if cfg.termination not in TERMINATIONS:
         raise ConfigError(f"termination must be one of {', '.join(TERMINATIONS)}, got {cfg.termination!r}")
     positive_int(cfg, "init_states")
+    if cfg.get("policy_label") not in (None, *POLICY_SOURCES):
+        raise ConfigError(f"policy_label must be one of {', '.join(POLICY_SOURCES)} (or null), got {cfg.policy_label!r}")
     positive_int(cfg, "videos_per_task", allow_zero=True)
     if cfg.init_states > 50:
         raise ConfigError(f"init_states is at most 50 (the benchmark has 50 per task), got {cfg.init_states}")
@@ -83,7 +85,7 @@ def run(cfg: DictConfig) -> dict:
     run_dir = (Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized()
                else manifest.root / "evaluate" / f"{cfg.termination}-{datetime.now():%Y-%m-%d_%H-%M-%S-%f}")
     modes = MODES if cfg.termination == "all" else (cfg.termination,)
-    policy_tag = cfg.policy_from if cfg.policy_from in POLICY_SOURCES else "custom"
+    policy_tag = cfg.get("policy_label") or (cfg.policy_from if cfg.policy_from in POLICY_SOURCES else "custom")
     suite, max_steps = target_suite(cfg)
     # Only a cross-suite evaluation carries the tag, so the report keeps it apart from the task's own.
     suite_tag = {"eval_suite": suite} if cfg.eval_suite is not None else {}

@@ -85,6 +85,20 @@ def test_evaluate_without_a_policy_names_the_missing_stage(tmp_path):
         evaluate(cfg("evaluate", tmp_path, "init_states=1", "progress=false"))
     with pytest.raises(ConfigError, match="termination must be one of oracle, fixed"):
         evaluate(cfg("evaluate", tmp_path, "termination=never"))
+    with pytest.raises(ConfigError, match="policy_label must be one of"):
+        evaluate(cfg("evaluate", tmp_path, "policy_label=best"))
+
+
+def test_a_released_checkpoint_folder_fills_its_named_column(experiment):
+    """make eval-release: a policy given as a folder is tabled as the policy it is labelled."""
+    exp, _, _ = experiment
+    folder = next(p.parent for p in Manifest(exp).resolve(Manifest(exp).latest("train_policy", task="tiny"))
+                  if p.name == "model.safetensors")
+    evaluate(cfg("evaluate", exp, f"policy_from={folder}", "policy_label=post_trained", "termination=fixed",
+                 "init_states=1", "workers=1", "progress=false", "videos_per_task=0"))
+    rec = Manifest(exp).latest("evaluate", task="tiny", policy="post_trained")
+    _, cells = success_table(ReportContext(Manifest(exp), "tiny", exp / "report"))
+    assert rec.tags["termination"] == "fixed" and ("post_trained", "fixed") in cells
 
 
 def test_evaluate_on_another_registered_suite_with_the_same_tasks(experiment):
