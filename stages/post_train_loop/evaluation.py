@@ -125,9 +125,12 @@ def section(ctx: ReportContext, limit: int = 6) -> list[str]:
     rows = []
     for r in runs:
         h = ctx.history(r)
-        curve = ", ".join(f"{k}: {100 * v:.0f} %" for k, v in r.metrics.get("real_success", {}).items()) or "not run"
+        curve = ", ".join(f"{k}: {100 * v:.0f} %" for k, v in sorted(r.metrics.get("real_success", {}).items(),
+                                                                     key=lambda kv: int(kv[0]))) or "not run"
+        real = r.tags.get("env") == "real"  # the reference: no world model, the oracle as reward
         rows.append([r.tags.get("env", "imagined"), r.tags.get("eta"), r.tags.get("n_rollouts"), r.metrics.get("iterations"),
-                     ctx.input_tags(r, "train_worldsim").get("data", "?"), ctx.input_tags(r, "train_reflector").get("data", "?"),
+                     "none" if real else ctx.input_tags(r, "train_worldsim").get("data", "?"),
+                     "oracle" if real else ctx.input_tags(r, "train_reflector").get("data", "?"),
                      _span(h, "mean_reward"), _span(h, "reflector_success_rate"), _span(h, "episode_length"),
                      imagined_span(r), curve, f"{r.wall_time_s:.0f}"])
     lines = markdown_table(["env", "eta", "N", "iterations", "world model data", "reflector data",

@@ -132,7 +132,8 @@ def test_the_real_simulator_reference_is_plotted_beside_the_imagined_route_and_i
     assert post_train_loop.real_episodes_used(ctx, real) == (3, 8)  # + 8 per iteration of its own
     assert post_train_loop.real_episodes_used(ctx, imagined) == (0, 0)
     text = "\n".join(post_train_loop.section(ctx))
-    assert "| real | None | 4 | 2 |" in text and "| imagined | 0.5 | 4 | 2 |" in text
+    assert "| real | None | 4 | 2 | none | oracle |" in text and "| imagined | 0.5 | 4 | 2 |" in text
+    assert "| 0: 20 %, 2: 60 % |" in text  # by iteration, in order
     assert "![imagined vs real route](routes.png)" in text and (ctx.out / "routes.png").stat().st_size > 1000
     accounting = "\n".join(real_episodes_section(ctx))
     assert "| training rollouts (the real-simulator reference) | 16 |" in accounting
