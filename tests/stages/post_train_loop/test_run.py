@@ -24,7 +24,7 @@ cfg = stage_cfg
 
 @pytest.fixture(scope="module")
 def trained(tiny_models):
-    return tiny_models, post_train_loop(cfg("post_train_loop", tiny_models, *LOOP))
+    return tiny_models, post_train_loop(cfg("post_train_loop", tiny_models, *LOOP, "eval.paired_contexts=2"))
 
 
 def test_loop_records_a_post_trained_policy_with_its_real_success_curve(trained, contract):
