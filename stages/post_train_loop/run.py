@@ -27,6 +27,7 @@ from stages.post_train_loop.evaluation import PairedCheck, imagined_success, rea
 from stages.post_train_loop.sweep import sweep_dir, write_summary
 from stages.post_train_loop.training import (contexts_from_episodes, imagined_collector, real_collector, real_starts,
                                              rl_phase)
+from worldenv_core.envs.replay import RealStart
 from worldenv_core.imagination.env import build_imagined_env
 from worldenv_core.data.selection import collected_episodes
 from worldenv_core.manifest import StageRun
@@ -107,9 +108,10 @@ def run(cfg: DictConfig) -> dict:
                                              device, contract, rl.sampler_noise)
             if policy.cameras != [camera]:
                 raise ConfigError(f"the policy looks at {policy.cameras}, but the world simulator imagines only {camera!r}")
-            pairs = [(c, st) for c, st in zip(contexts_from_episodes(episodes, camera), real_starts(episodes)[0])
-                     if c.task_id in task_ids]
-            contexts, starts = [c for c, _ in pairs], [st for _, st in pairs]  # starts: paired replay at evaluations
+            kept = [(c, p) for c, p in zip(contexts_from_episodes(episodes, camera), episodes) if c.task_id in task_ids]
+            contexts = [c for c, _ in kept]
+            # where each context starts in the real simulator: the paired replays at evaluations
+            starts = [RealStart(task_id=c.task_id, episode=str(p), frame=0) for c, p in kept]
             n_contexts = len(contexts)
         if not n_contexts:
             raise ConfigError(f"no collected episode of task(s) {sorted(task_ids)} to start rollouts from")

@@ -53,7 +53,7 @@ def real_collector(contract, starts: list[RealStart], instructions: list[str], n
     def collect(behaviour, picks, g):
         for old in folder.glob("behaviour_*"):
             shutil.rmtree(old, ignore_errors=True)
-        path = save_model(folder / f"behaviour_{next(count)}", copy.deepcopy(behaviour).cpu(), model_config, meta)
+        path = save_model(folder / f"behaviour_{next(count)}", behaviour, model_config, meta)  # weights copied to CPU
         return collect_real_rollouts(behaviour, path, contract, [starts[i] for i in picks],
                                      [instructions[i] for i in picks], n_rollouts, encode, horizon, g, workers=workers,
                                      progress=progress)

@@ -108,14 +108,12 @@ def collect_real_rollouts(behaviour, behaviour_path: str | Path, contract: TaskC
     lang = encoder([instructions[i // n_rollouts] for i in range(len(seeds))]).float().cpu()
     jobs = [RealRolloutJob(contract, starts[i // n_rollouts], str(behaviour_path), s, lang[i].numpy(), horizon, noise_scale,
                            index=i) for i, s in enumerate(seeds)]
-    done = {r["index"]: r for r in run_jobs(real_rollout, jobs, workers=workers, launcher=launcher, desc="real rollouts",
-                                           ray_address=ray_address, progress=progress, unit="rollout")}
-    runs = [done[i] for i in range(len(seeds))]
+    runs = sorted(run_jobs(real_rollout, jobs, workers=workers, launcher=launcher, desc="real rollouts",
+                           ray_address=ray_address, progress=progress, unit="rollout"), key=lambda r: r["index"])
     n_chunks = max(1, max(len(r["actions"]) for r in runs))
-    rows = len(runs)
-    h, w = contract.image_size, contract.image_size
-    frames = torch.zeros(rows, n_chunks, 3, h, w, dtype=torch.uint8)
-    proprio = torch.zeros(rows, n_chunks, len(runs[0]["proprio"][0]) if runs[0]["proprio"] else 7)
+    rows, size = len(runs), contract.image_size
+    frames = torch.zeros(rows, n_chunks, 3, size, size, dtype=torch.uint8)
+    proprio = torch.zeros(rows, n_chunks, contract.proprio_dim)
     actions = torch.zeros(rows, n_chunks, chunk, contract.action_dim)
     mask = torch.zeros(rows, n_chunks, chunk)
     for i, r in enumerate(runs):
