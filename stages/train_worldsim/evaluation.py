@@ -62,15 +62,20 @@ def _weighted_mean(values_weights) -> float:
     return sum(v * w for v, w in pairs) / sum(w for _, w in pairs) if pairs else float("nan")
 
 
-def evaluate_fidelity(cfg, model, kinematics, cameras, held_eps, work: Path) -> dict:
+def evaluate_fidelity(cfg, model, kinematics, cameras, held_eps, work: Path, baseline=None) -> dict:
     """Open-loop fidelity on held-out episodes (model vs copy-last-frame) and kinematics error.
-    With detail transfer on, the model's plain decoding is measured too (`plain_psnr/ssim`)."""
+    With detail transfer on, the model's plain decoding is measured too (`plain_psnr/ssim`);
+    `baseline` (the model a fine-tuning started from) is measured on the same starts
+    (`start_psnr/ssim`)."""
     model.eval()
     fidelity, videos = fidelity_by_horizon(cfg, model, kinematics, cameras, held_eps, model.detail_gate)
-    if model.detail_gate > 0:
-        plain, _ = fidelity_by_horizon(cfg, model, kinematics, cameras, held_eps, 0.0)
+    extra = [("plain", model, 0.0)] if model.detail_gate > 0 else []
+    extra += [("start", baseline, baseline.detail_gate)] if baseline is not None else []
+    for name, other, gate in extra:
+        theirs, _ = fidelity_by_horizon(cfg, other.eval(), kinematics, cameras, held_eps, gate)
         for h, v in fidelity.items():
-            v.update(plain_psnr=plain[h]["model_psnr"], plain_ssim=plain[h]["model_ssim"])
+            v.update({f"{name}_psnr": theirs[h]["model_psnr"], f"{name}_ssim": theirs[h]["model_ssim"],
+                      f"{name}_ssim_moving": theirs[h]["model_ssim_moving"]})
     kin = {f"kinematics_{h}step": state_errors(kinematics, held_eps, h) for h in (1, cfg.task.chunk)}
     (work / "videos").mkdir(exist_ok=True)
     for i, (real, fake) in enumerate(videos[: cfg.fidelity.videos]):
@@ -83,10 +88,11 @@ def evaluate_fidelity(cfg, model, kinematics, cameras, held_eps, work: Path) -> 
     (work / "fidelity.json").write_text(json.dumps(report, indent=2))
     plain = lambda v, k: f"{v[k]:.3f}" if k in v else "-"  # noqa: E731
     md = markdown_table(["horizon (steps)", "PSNR model", "PSNR copy-last", "SSIM model", "SSIM copy-last",
-                         "PSNR / SSIM plain decoding", "SSIM static: model / copy", "SSIM moving: model / copy",
-                         "moving share", "n"],
+                         "PSNR / SSIM plain decoding", "PSNR / SSIM / SSIM moving: starting model",
+                         "SSIM static: model / copy", "SSIM moving: model / copy", "moving share", "n"],
                         [[h, f"{v['model_psnr']:.2f}", f"{v['copy_psnr']:.2f}", f"{v['model_ssim']:.3f}",
                           f"{v['copy_ssim']:.3f}", f"{plain(v, 'plain_psnr')} / {plain(v, 'plain_ssim')}",
+                          f"{plain(v, 'start_psnr')} / {plain(v, 'start_ssim')} / {plain(v, 'start_ssim_moving')}",
                           f"{v['model_ssim_static']:.3f} / {v['copy_ssim_static']:.3f}",
                           f"{v['model_ssim_moving']:.3f} / {v['copy_ssim_moving']:.3f}", f"{v['moving_fraction']:.2f}",
                           v["n"]] for h, v in sorted(fidelity.items())])

@@ -1,7 +1,10 @@
 """How the world simulator trains: phase 1 the autoencoder on frames, phase 2 the latent flow
-model on chunks of once-encoded frames with EMA weights (the Trainer's two Phases)."""
+model on chunks of once-encoded frames with EMA weights, and optionally phase 3 the same flow
+model open loop, on memory it imagined itself (the Trainer's Phases)."""
 
 from __future__ import annotations
+
+from itertools import count
 
 import torch
 
@@ -51,16 +54,57 @@ def flow_phase(model, ema, optimizer, episodes, cameras, cfg, device) -> Phase:
         loss = model.flow_loss(memory, maps, b["target"].to(device) / model.latent_scale, b["actions"].to(device),
                                b["valid"].to(device))
         optimize(loss, optimizer, clip=1.0, params=list(model.velocity.parameters()))
-        with torch.no_grad():
-            for pe, p in zip(ema.parameters(), model.parameters()):
-                pe.lerp_(p, 1 - cfg.flow.ema)
-            for be, bm in zip(ema.buffers(), model.buffers()):
-                be.copy_(bm)
+        _update_ema(ema, model, cfg.flow.ema)
         return {"flow": loss.item()}
     return Phase("flow", cfg.flow.steps, draw, step)
 
 
-def _latent_chunks(model, episodes, device, fresh: bool) -> LatentChunks:
+def rollout_phase(model, ema, optimizer, episodes, cameras, cfg, device) -> Phase:
+    """Phase 3, open-loop training. Imagined rollouts start from real frames and then feed on their
+    own predictions, which teacher forcing never shows the model: the arm blurs a little per chunk
+    and the blur compounds. Here the model first imagines `depth` chunks of the recorded actions
+    itself, exactly as imagination does (its sampler and static snap, no gradient), and the flow
+    loss then asks for the next chunk's *real* latents from that imagined memory: it learns to
+    pull a drifted rollout back to what the actions do. depth is drawn per step from 0 (the
+    teacher-forced loss, which keeps one-chunk accuracy) to `rollout.chunks`."""
+    ahead = cfg.rollout.chunks + 1
+
+    def draw(start: int):
+        chunks = _latent_chunks(model, episodes, device, fresh=False, chunks_ahead=ahead)
+        return zip(count(start), batches(chunks, cfg.rollout.batch_size, cfg.seed + 2, start_step=start))
+
+    def step(item) -> dict:
+        done, b = item
+        g = torch.Generator().manual_seed(step_seed(cfg.seed + 2, done))
+        depth = int(torch.randint(ahead, (1,), generator=g))
+        k, n = model.chunk, (depth + 1) * model.chunk
+        past = b["past"].to(device) / model.latent_scale
+        maps = _maps(b["proprio"][:, :n], b["task_id"], cameras, model.map_size).to(device)
+        actions = b["actions"][:, :n].float().to(device)
+        history = past
+        for c in range(depth):  # no_grad inside next_chunk: the memory is an input, as at inference
+            history = torch.cat([history, model.next_chunk(history, past[:, -1], maps[:, c * k:(c + 1) * k],
+                                                           actions[:, c * k:(c + 1) * k])], dim=1)
+        memory = model.memory(history)
+        memory = memory + cfg.flow.memory_noise * torch.randn_like(memory)
+        last = slice(depth * k, n)
+        loss = model.flow_loss(memory, maps[:, last], b["target"][:, last].to(device) / model.latent_scale,
+                               actions[:, last], b["valid"][:, last].to(device))
+        optimize(loss, optimizer, clip=1.0, params=list(model.velocity.parameters()))
+        _update_ema(ema, model, cfg.flow.ema)
+        return {"rollout": loss.item(), "rollout_depth": depth}
+    return Phase("rollout", cfg.rollout.steps, draw, step)
+
+
+@torch.no_grad()
+def _update_ema(ema, model, decay: float) -> None:
+    for pe, p in zip(ema.parameters(), model.parameters()):
+        pe.lerp_(p, 1 - decay)
+    for be, bm in zip(ema.buffers(), model.buffers()):
+        be.copy_(bm)
+
+
+def _latent_chunks(model, episodes, device, fresh: bool, chunks_ahead: int = 1) -> LatentChunks:
     model.eval()
     cam = next(iter(episodes[0].images))
     latents = [encode_episode_frames(model, ep.images[cam], device=device) for ep in episodes]
@@ -71,4 +115,4 @@ def _latent_chunks(model, episodes, device, fresh: bool) -> LatentChunks:
         deltas = torch.cat([(lat[k:] - lat[:-k]).flatten() for lat in latents for k in range(1, model.chunk + 1)
                             if len(lat) > k])
         model.delta_scale.fill_(float(deltas.std() / z.std()))
-    return LatentChunks(latents, episodes, model.memory_offsets, model.chunk)
+    return LatentChunks(latents, episodes, model.memory_offsets, model.chunk, chunks_ahead)

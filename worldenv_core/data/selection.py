@@ -59,11 +59,17 @@ def episode_key(path: str | Path) -> str:
     return "/".join(Path(path).parts[-3:])
 
 
-def load_split(paths: list[Path], holdout_every: int, camera: str) -> tuple[list[Path], list[Path], list, list]:
+def load_split(paths: list[Path], holdout_every: int, camera: str,
+               held_out: Iterable[str] | None = None) -> tuple[list[Path], list[Path], list, list]:
     """What the world-simulator and reflector stages start from: `paths` (`collected_episodes`)
-    split by `holdout_every` and read with `camera` only. Returns (train paths, held-out paths,
+    split by `holdout_every` (or, given `held_out` episode keys, e.g. a model's that is trained
+    further, exactly those) and read with `camera` only. Returns (train paths, held-out paths,
     train episodes, held-out episodes); nothing left to train on is an error naming the count."""
-    train, held = holdout_split(paths, holdout_every)
+    if held_out is None:
+        train, held = holdout_split(paths, holdout_every)
+    else:
+        keys = set(held_out)
+        train, held = [p for p in paths if episode_key(p) not in keys], [p for p in paths if episode_key(p) in keys]
     if not train:
         raise MissingEpisodesError(f"only {len(paths)} episodes: none left for training after holding out {len(held)}; "
                                    "collect more (episodes_per_task=N) or raise holdout_every")

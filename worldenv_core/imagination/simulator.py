@@ -98,8 +98,7 @@ class ImaginedSimulator:
         self.carry = observed_carry(prev_proprio.to(self.device, torch.float64), self.proprio) if prev_proprio is not None else None
 
     def memory(self) -> torch.Tensor:
-        t = self.latents.shape[1] - 1
-        return self.latents[:, self.model.memory_indices(t)]
+        return self.model.memory(self.latents)
 
     @torch.no_grad()
     def step(self, actions: torch.Tensor, decode: str = "all", generator: torch.Generator | None = None) -> ChunkResult:
@@ -116,10 +115,8 @@ class ImaginedSimulator:
         states, self.carry = self.kinematics.rollout(self.proprio, actions.double(), self.carry)
         maps = (draw_action_maps(states.float(), self.camera, size=self.model.map_size) if self.rollout_cameras is None
                 else draw_action_maps_per_rollout(states, self.rollout_cameras, self.model.map_size))
-        z = self.model.predict_latents(self.memory(), maps, actions.float(), steps=self.steps, generator=generator,
-                                       noise_scale=self.noise)
-        if self.model.static_snap > 0:
-            z = snap_static(z, self.anchor_latent, self.model.static_snap)
+        z = self.model.next_chunk(self.latents, self.anchor_latent, maps, actions.float(), steps=self.steps,
+                                  generator=generator, noise_scale=self.noise)
         self.latents = torch.cat([self.latents, z], dim=1)
         self.proprio = states[:, -1]
         kept = {"all": z, "last": z[:, -1:], "none": None}[decode]
@@ -137,16 +134,6 @@ class ImaginedSimulator:
         change = torch.nn.functional.max_pool2d(change, 5, stride=1, padding=2).view(*x.shape[:2], 1, *x.shape[3:])
         keep = (1 - change / self.detail_gate).clamp(min=0)
         return (x + keep * detail).clamp(0, 1)
-
-
-def snap_static(z: torch.Tensor, anchor: torch.Tensor, threshold: float) -> torch.Tensor:
-    """z (B, K, C, h, w) predicted latents, anchor (B, C, h, w) the last real one: changes below
-    `threshold` (mean |change| over channels) go back to the anchor, changes above 2x stay, a
-    linear ramp between; the weight is max-pooled 3x3 so neighbours of a change keep theirs."""
-    change = z - anchor[:, None]
-    size = change.abs().mean(dim=2, keepdim=True).flatten(0, 1)
-    keep = torch.nn.functional.max_pool2d((size / threshold - 1).clamp(0, 1), 3, stride=1, padding=1)
-    return anchor[:, None] + change * keep.view(*z.shape[:2], 1, *z.shape[3:])
 
 
 @torch.no_grad()

@@ -249,3 +249,30 @@ class WorldSimulator(nn.Module):
     def memory_indices(self, t: int) -> list[int]:
         """Frame indices (clamped at 0) that form the memory at step t."""
         return [max(0, t - o) for o in self.memory_offsets]
+
+    def memory(self, latents: torch.Tensor) -> torch.Tensor:
+        """(B, T, C, h, w) latent history, the last one current -> its memory (B, M, C, h, w)."""
+        return latents[:, self.memory_indices(latents.shape[1] - 1)]
+
+    @torch.no_grad()
+    def next_chunk(self, latents: torch.Tensor, anchor: torch.Tensor, action_maps: torch.Tensor,
+                   actions: torch.Tensor | None = None, steps: int | None = None,
+                   generator: torch.Generator | None = None, noise_scale: float | None = None) -> torch.Tensor:
+        """One open-loop chunk as imagination makes it: latents (B, T, C, h, w) the history so far
+        (real, then imagined), anchor (B, C, h, w) the last real latent -> the next K latents, the
+        flow's prediction from the history's memory with the static snap applied. Imagined rollouts
+        and open-loop training both step through here, so training sees the errors inference makes."""
+        z = self.predict_latents(self.memory(latents), action_maps, actions, steps=steps, generator=generator,
+                                 noise_scale=noise_scale)
+        return snap_static(z, anchor, self.static_snap) if self.static_snap > 0 else z
+
+
+def snap_static(z: torch.Tensor, anchor: torch.Tensor, threshold: float) -> torch.Tensor:
+    """z (B, K, C, h, w) predicted latents, anchor (B, C, h, w) the last real one: changes below
+    `threshold` (mean |change| over channels) go back to the anchor, changes above 2x stay, a
+    linear ramp between; the weight is max-pooled 3x3 so neighbours of a change keep theirs.
+    (Why: worldenv_core/imagination/simulator.py, "Static snap".)"""
+    change = z - anchor[:, None]
+    size = change.abs().mean(dim=2, keepdim=True).flatten(0, 1)
+    keep = F.max_pool2d((size / threshold - 1).clamp(0, 1), 3, stride=1, padding=1)
+    return anchor[:, None] + change * keep.view(*z.shape[:2], 1, *z.shape[3:])

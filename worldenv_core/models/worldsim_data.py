@@ -26,17 +26,25 @@ def encode_episode_frames(model, frames: np.ndarray, batch: int = 64, device="cp
 class LatentChunks(Dataset):
     """Items at every step t of every episode: memory latents (M, C, h, w) at the model's memory
     offsets, the next K latents (K, C, h, w), the K actions and next proprio states, a validity
-    mask for steps past the episode end (edge-padded), and the task id (its camera)."""
+    mask for steps past the episode end (edge-padded), and the task id (its camera).
 
-    def __init__(self, latents: list[torch.Tensor], episodes: list[Episode], memory_offsets, chunk: int):
+    `chunks_ahead` > 1 (open-loop training) widens an item to `chunks_ahead` x K steps ahead
+    ("target", "proprio", "actions", "valid" of shape (chunks_ahead * K, ...)) and adds "past", the
+    real latents t - history .. t (history + 1, C, h, w) that an imagined rollout from t starts
+    with; t then only runs to where the last chunk still has a step inside the episode."""
+
+    def __init__(self, latents: list[torch.Tensor], episodes: list[Episode], memory_offsets, chunk: int,
+                 chunks_ahead: int = 1):
+        if chunks_ahead < 1:
+            raise ValueError(f"chunks_ahead must be >= 1, got {chunks_ahead}")
         self.latents = latents
         self.proprio = [torch.from_numpy(ep.proprio) for ep in episodes]
         self.actions = [torch.from_numpy(ep.actions) for ep in episodes]
         self.task_ids = [ep.meta.task_id for ep in episodes]
         self.offsets = np.asarray(memory_offsets)
-        self.chunk = chunk
-        lengths = [ep.length for ep in episodes]
-        self.index = [(e, t) for e, n in enumerate(lengths) for t in range(n)]
+        self.chunk, self.ahead = chunk, chunks_ahead
+        lead = chunk * (chunks_ahead - 1)  # steps before the last chunk
+        self.index = [(e, t) for e, ep in enumerate(episodes) for t in range(max(0, ep.length - lead))]
 
     def __len__(self) -> int:
         return len(self.index)
@@ -45,9 +53,12 @@ class LatentChunks(Dataset):
         e, t = self.index[i]
         z, T = self.latents[e], len(self.actions[e])
         mem = torch.from_numpy(np.clip(t - self.offsets, 0, None))
-        fut = np.arange(t + 1, t + 1 + self.chunk)
+        fut = np.arange(t + 1, t + 1 + self.chunk * self.ahead)
         valid = fut <= T
         fut_idx = torch.from_numpy(np.clip(fut, 0, T))
         act_idx = torch.from_numpy(np.clip(fut - 1, 0, T - 1))
-        return {"memory": z[mem], "target": z[fut_idx], "proprio": self.proprio[e][fut_idx],
+        item = {"memory": z[mem], "target": z[fut_idx], "proprio": self.proprio[e][fut_idx],
                 "actions": self.actions[e][act_idx], "valid": torch.from_numpy(valid), "task_id": self.task_ids[e]}
+        if self.ahead > 1:
+            item["past"] = z[torch.arange(t - int(self.offsets.max()), t + 1).clamp(min=0)]
+        return item

@@ -152,7 +152,7 @@ def test_zero_temperature_one_step_sampling_is_the_flow_mean():
 
 
 def test_static_snap_returns_small_changes_to_the_last_real_latent():
-    from worldenv_core.imagination.simulator import snap_static
+    from worldenv_core.models.worldsim import snap_static
 
     anchor = torch.zeros(1, 4, 8, 8)
     z = torch.full((1, 2, 4, 8, 8), 0.05)  # drift everywhere ...
