@@ -26,6 +26,7 @@ from pathlib import Path
 
 from worldenv_core.errors import ArtefactError  # noqa: F401 - raised here, caught by its users
 from worldenv_core.locks import RunLock
+from worldenv_core.distributed import is_main
 
 log = logging.getLogger(__name__)
 MANIFEST_NAME = "manifest.jsonl"
@@ -255,7 +256,10 @@ class StageRun:
 
     def lock(self, target, what: str | None = None) -> None:
         """Hold `target`'s run lock until this run ends (`worldenv_core.locks.RunLock`): a second
-        run writing the same folder fails at once, naming this one."""
+        run writing the same folder fails at once, naming this one. In a torchrun launch only rank
+        0 writes, so only rank 0 locks."""
+        if not is_main():
+            return
         self._locks.append(RunLock(target, what or f"{self.record.stage} into {target}").acquire())
 
     def use(self, record: StageRecord, kind: str | None = None) -> list[Path]:

@@ -143,9 +143,10 @@ def resolve_policy(cfg: DictConfig, stage_run) -> str:
 # Scale settings that choose how a result is evaluated, not what is trained (each stage's own
 # copy, e.g. train_reflector's eta_folds, is left out of its work-dir name as well).
 EVALUATION_ONLY_SCALE_KEYS = ("eta_folds", "rl_paired_contexts")
-# Settings that do not define what is trained: how a run is watched, and where the experiment
-# lives (work dirs sit inside it, so a moved or copied experiment finds its finished work).
-NOT_NAMING_WORK_DIRS = ("logger", "experiment_dir")
+# Settings that do not define what is trained: how a run is watched, where the experiment lives
+# (work dirs sit inside it, so a moved or copied experiment finds its finished work), and how a
+# batch is split into micro-batches (a run resumes with another split, as with another world size).
+NOT_NAMING_WORK_DIRS = ("logger", "experiment_dir", "accumulate")
 
 
 def work_dir(experiment_dir, stage: str, config: dict, inputs: list[str]) -> Path:

@@ -17,6 +17,7 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from worldenv_core.errors import ConfigError
+from worldenv_core.distributed import is_main
 
 log = logging.getLogger(__name__)
 LOGGERS = ("tensorboard", "wandb", "none")
@@ -93,8 +94,8 @@ def make_tracker(spec: DictConfig | None, work: Path, stage: str, group: str = "
     """The tracker a stage's `logger` setting selects (`spec`: its config node, None for none),
     writing under the run's work dir (so a resumed run appends to its own curves and an
     experiment's runs are found by `tensorboard --logdir <experiment>`). `group`: the task name
-    (a wandb group)."""
-    name = spec.name if spec is not None else "none"
+    (a wandb group). Ranks other than 0 of a torchrun launch log nothing."""
+    name = spec.name if spec is not None and is_main() else "none"
     work = Path(work)
     if name == "tensorboard":
         return TensorBoardTracker(work / "tensorboard", int(spec.get("flush_secs", 10)))

@@ -27,6 +27,7 @@ from stages.post_train_loop.evaluation import PairedCheck, imagined_success, rea
 from stages.post_train_loop.sweep import sweep_dir, write_summary
 from stages.post_train_loop.training import (contexts_from_episodes, imagined_collector, real_collector, real_starts,
                                              rl_phase)
+from worldenv_core.distributed import launched
 from worldenv_core.envs.replay import RealStart
 from worldenv_core.imagination.env import build_imagined_env
 from worldenv_core.data.selection import collected_episodes
@@ -49,6 +50,9 @@ ENVS = ("imagined", "real")
 
 def validate(cfg: DictConfig) -> None:
     require_task(cfg)
+    if launched() > 1:  # its PPO step and imagined rollouts are not sharded over ranks yet (issue 24)
+        raise ConfigError(f"post_train_loop runs in one process, but torchrun launched {launched()}: run it with "
+                          "python -m (collection, evaluation and real rollouts fan out with workers= / launcher=ray)")
     for key in ("rl.iterations", "rl.contexts_per_iteration", "rl.ppo_epochs", "rl.minibatch", "rl.horizon"):
         positive_int(cfg, key)
     positive_int(cfg, "eval.every", allow_zero=True)

@@ -20,7 +20,7 @@ from worldenv_core.manifest import StageRun
 from worldenv_core.models.text import InstructionEncoder
 from worldenv_core.stage import ConfigError, positive_int, require_task, resolved, start, task_contract, work_dir
 from worldenv_core.tracking import make_tracker
-from worldenv_core.training import Phase, Trainer, batches, pick_device
+from worldenv_core.training import Phase, Trainer, batches, pick_device, trainer_options
 
 log = logging.getLogger("worldenv.train_policy")
 
@@ -30,6 +30,7 @@ def validate(cfg: DictConfig) -> None:
     for key in ("demos_per_task", "train.steps", "train.batch_size", "scale_head.steps", "scale_head.batch_size",
                 "train.log_every", "train.checkpoint_every"):
         positive_int(cfg, key)
+    trainer_options(cfg, "train.batch_size", "scale_head.batch_size")
 
 
 def select_demos(paths: list[Path], per_task: int, task_ids: list[int] | None) -> list[Path]:
@@ -65,7 +66,8 @@ def run(cfg: DictConfig) -> dict:
                           meta={"kind": "policy", **contract.meta(), "cameras": list(contract.cameras),
                                 "demos": len(paths)},
                           log_every=cfg.train.log_every, checkpoint_every=cfg.train.checkpoint_every,
-                          tracker=make_tracker(cfg.get("logger"), work, "train_policy", contract.name, config))
+                          tracker=make_tracker(cfg.get("logger"), work, "train_policy", contract.name, config),
+                          **trainer_options(cfg, "train.batch_size", "scale_head.batch_size"))
         encoder = InstructionEncoder()
         log.info("training on %d demos (%d chunks) for %d + %d steps on %s; work dir %s",
                  len(paths), len(data), cfg.train.steps, cfg.scale_head.steps, device, work)

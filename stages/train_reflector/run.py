@@ -25,7 +25,7 @@ from worldenv_core.rl.termination import check_eta
 from worldenv_core.models.text import InstructionEncoder
 from worldenv_core.stage import (ConfigError, positive_int, require_task, resolve_checkpoint, resolved, start,
                                  task_contract, work_dir)
-from worldenv_core.training import pick_device, record_checkpoint
+from worldenv_core.training import pick_device, record_checkpoint, trainer_options
 from worldenv_core.viz import plot_history
 
 log = logging.getLogger("worldenv.train_reflector")
@@ -53,6 +53,7 @@ def validate(cfg: DictConfig) -> None:
                           f"({cfg.train.checkpoint_every}) so a resumed run mines what it mined; got {cfg.train.mine.every}")
     if not 0.0 <= cfg.train.mine.threshold <= 1.0:
         raise ConfigError(f"train.mine.threshold must be in [0, 1], got {cfg.train.mine.threshold}")
+    trainer_options(cfg, "train.batch_size")
     if cfg.train.batch_size < 2:
         raise ConfigError("train.batch_size must be at least 2 (half positives, half negatives)")
 

@@ -20,7 +20,7 @@ from worldenv_core.models.reflector_data import PrefixSampler
 from worldenv_core.rl.termination import best_eta
 from worldenv_core.stage import ConfigError
 from worldenv_core.tracking import make_tracker
-from worldenv_core.training import Phase, Trainer, optimize, per_step, random_shift, step_seed
+from worldenv_core.training import Phase, Trainer, optimize, per_step, random_shift, step_seed, trainer_options
 
 log = logging.getLogger("worldenv.train_reflector")
 
@@ -61,7 +61,8 @@ def train(cfg, model, model_cfg: dict, meta: dict, sampler: PrefixSampler, encod
                             weight_decay=cfg.train.weight_decay)
     trainer = Trainer(work, model, {"reflector": opt}, model_config=model_cfg, meta=meta, desc="train_reflector",
                       log_every=cfg.train.log_every, checkpoint_every=cfg.train.checkpoint_every, overall=overall,
-                      tracker=make_tracker(cfg.get("logger"), work, "train_reflector", meta["task"]))
+                      tracker=make_tracker(cfg.get("logger"), work, "train_reflector", meta["task"]),
+                      **trainer_options(cfg, "train.batch_size"))
     total, mine_every = cfg.train.steps, cfg.train.mine.every
     if mine_every and mine_every <= trainer.step < total:  # resumed: the hard set the run had (checkpoints fall on mining steps)
         _mine(cfg, model, sampler, encoder, device, trainer.step - trainer.step % mine_every)

@@ -29,9 +29,10 @@ from worldenv_core.models.checkpoint import load_checkpoint, read_config
 from worldenv_core.stage import (ConfigError, positive_int, require_task, resolve_checkpoint, resolved, start,
                                  task_contract, work_dir)
 from worldenv_core.tracking import make_tracker
-from worldenv_core.training import Trainer, pick_device
+from worldenv_core.training import Trainer, pick_device, trainer_options
 
 log = logging.getLogger("worldenv.train_worldsim")
+BATCHES = ("ae.batch_size", "flow.batch_size", "rollout.batch_size")
 
 
 def validate(cfg: DictConfig) -> None:
@@ -42,6 +43,7 @@ def validate(cfg: DictConfig) -> None:
     positive_int(cfg, "rollout.steps", allow_zero=True)
     positive_int(cfg, "rollout.chunks")
     positive_int(cfg, "rollout.batch_size")
+    trainer_options(cfg, *BATCHES)
     if cfg.init_from and not cfg.rollout.steps:
         raise ConfigError("init_from trains the open-loop phase only: give it rollout.steps > 0")
     if cfg.camera not in cfg.task.cameras:
@@ -97,7 +99,8 @@ def run(cfg: DictConfig) -> dict:
         trainer = Trainer(work, model, optimizers, model_config=model_cfg, meta=meta, desc="train_worldsim",
                           log_every=cfg.log_every, checkpoint_every=cfg.checkpoint_every,
                           extra_state=lambda: {"ema": ema.state_dict()},
-                          tracker=make_tracker(cfg.get("logger"), work, "train_worldsim", contract.name, config))
+                          tracker=make_tracker(cfg.get("logger"), work, "train_worldsim", contract.name, config),
+                          **trainer_options(cfg, *BATCHES))
         if "ema" in trainer.extra:
             ema.load_state_dict(trainer.extra["ema"])
         frames_of = lambda: torch.cat([torch.from_numpy(ep.images[cfg.camera]) for ep in episodes])  # noqa: E731

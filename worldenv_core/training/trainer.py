@@ -6,13 +6,19 @@ evaluations at fixed points, the curves plot and the manifest outputs.
 
 Resume is bit-identical: a phase's batches are a function of its step alone (`batches`,
 `per_step`), the RNG states travel in the checkpoint, and `extra_state` carries anything else
-(EMA weights, mined hard negatives are re-derived by the stage from the step)."""
+(EMA weights, mined hard negatives are re-derived by the stage from the step).
+
+Launched by torchrun, the same loop trains data-parallel (`worldenv_core.distributed`): each rank
+takes its slice of every global batch, gradients are averaged in `optimize`, rank 0 alone writes,
+and the other ranks leave when training ends. `accumulate` micro-batches per step and bf16
+autocast on GPU (`precision`) work the same at any world size."""
 
 from __future__ import annotations
 
 import logging
 import time
 from collections.abc import Callable, Iterator
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -21,6 +27,7 @@ import torch
 from tqdm import tqdm
 
 from worldenv_core.models.checkpoint import save_model
+from worldenv_core import distributed
 from worldenv_core.training.checkpoints import Checkpoints
 from worldenv_core.tracking import Tracker
 from worldenv_core.viz import plot_history
@@ -42,9 +49,10 @@ class Phase:
 
 def optimize(loss: torch.Tensor, optimizer: torch.optim.Optimizer, clip: float | None = None, params=None) -> None:
     """One gradient step on `loss`, its gradient norm clipped to `clip` over `params` (default:
-    every parameter the optimizer updates)."""
-    optimizer.zero_grad(set_to_none=True)
-    loss.backward()
+    every parameter the optimizer updates). In a data-parallel run the gradients are averaged over
+    ranks first; inside gradient accumulation only the last micro-batch steps."""
+    if not distributed.backward(loss, optimizer):
+        return
     if clip is not None:
         params = params if params is not None else [p for g in optimizer.param_groups for p in g["params"]]
         torch.nn.utils.clip_grad_norm_(params, clip)
@@ -82,26 +90,65 @@ class Trainer:
 
     model_config, meta: what the saved checkpoints rebuild the model from and say about it.
     extra_state: () -> dict of more state to checkpoint (restored into `self.extra`).
-    overall: a progress bar over several trainings (cross-validation folds) this one advances."""
+    overall: a progress bar over several trainings (cross-validation folds) this one advances.
+    parallel: train data-parallel when launched by torchrun (False: rank 0 alone, e.g. the extra
+        trainings a stage runs after its model's, once the other ranks have left).
+    accumulate: micro-batches per optimizer step (each rank's slice of a batch split again).
+    precision: "fp32", or "bf16" (autocast on a GPU; CPU runs stay fp32)."""
 
     def __init__(self, work: str | Path, model: torch.nn.Module, optimizers: dict[str, torch.optim.Optimizer], *,
                  model_config: dict, meta: dict, log_every: int, checkpoint_every: int, tracker: Tracker | None = None,
                  desc: str = "train", extra_state: Callable[[], dict] | None = None, progress: bool = True,
-                 overall=None, postfix: tuple[str, ...] | None = None, keep: int = 2):
+                 overall=None, postfix: tuple[str, ...] | None = None, keep: int = 2, parallel: bool = True,
+                 accumulate: int = 1, precision: str = "fp32"):
+        if accumulate < 1:
+            raise ValueError(f"accumulate must be >= 1, got {accumulate}")
+        if precision not in ("fp32", "bf16"):
+            raise ValueError(f"precision must be 'fp32' or 'bf16', got {precision!r}")
         self.work, self.model, self.optimizers = Path(work), model, optimizers
         self.model_config, self.meta = model_config, meta
         self.log_every, self.checkpoint_every = int(log_every), int(checkpoint_every)
-        self.tracker = tracker or Tracker()
+        self.main = distributed.is_main()
+        self.tracker = tracker if tracker is not None and self.main else Tracker()
         self.desc, self.extra_state, self.progress, self.overall, self.postfix = desc, extra_state, progress, overall, postfix
+        self.accumulate, self.precision = int(accumulate), precision
+        self.parallel = parallel and distributed.launched() > 1
+        self.ranks = distributed.launched() if self.parallel else 1  # what the run trains over (recorded)
+        if self.parallel:
+            device = next(model.parameters()).device
+            distributed.init(device)
         self.checkpoints = Checkpoints(self.work, keep)
         self.step, self.history = self.checkpoints.restore(model, optimizers)
         self.extra = self.checkpoints.extra
+        if self.parallel:
+            distributed.broadcast_model(model)
         self.wall_s = 0.0  # this sitting's training time
 
-    def save(self, done: int) -> Path:
-        """A resumable checkpoint at step `done` (the model, optimizers, RNG states, history)."""
+    @property
+    def world_size(self) -> int:
+        return distributed.launched() if self.parallel else 1
+
+    def save(self, done: int) -> Path | None:
+        """A resumable checkpoint at step `done` (the model, optimizers, RNG states, history); rank 0's."""
+        if not self.main:
+            return None
         return self.checkpoints.save(done, self.model, self.model_config, self.meta, self.optimizers, self.history,
                                      extra=self.extra_state() if self.extra_state else None)
+
+    def _train_step(self, phase: Phase, batch) -> dict:
+        """This rank's slice of the global batch, in `accumulate` micro-batches -> the step's values,
+        averaged over micro-batches and ranks."""
+        mine = distributed.shard(batch, distributed.rank(), self.world_size) if self.parallel else batch
+        device = next(self.model.parameters()).device
+        autocast = (torch.autocast("cuda", dtype=torch.bfloat16) if self.precision == "bf16" and device.type == "cuda"
+                    else nullcontext())
+        values: dict[str, float] = {}
+        for i in range(self.accumulate):
+            with distributed.micro_batch(i, self.accumulate), autocast:
+                part = phase.step(distributed.shard(mine, i, self.accumulate))
+            for k, v in part.items():
+                values[k] = values.get(k, 0.0) + float(v) / self.accumulate
+        return distributed.mean_over_ranks(values) if self.parallel else values
 
     def fit(self, phases: list[Phase], after_step: Callable[[int], None] | None = None,
             evaluate: Callable[[int, Path | None], dict] | None = None, evaluate_every: int = 0) -> list[dict]:
@@ -114,8 +161,12 @@ class Trainer:
         if self.overall is not None:
             self.overall.update(self.step)  # what earlier sittings (or a finished fold) did
         bar = tqdm(range(self.step, total), initial=self.step, total=total, desc=self.desc, dynamic_ncols=True,
-                   disable=not self.progress, position=0 if self.overall is None else 1, leave=self.overall is None)
+                   disable=not (self.progress and self.main), position=0 if self.overall is None else 1,
+                   leave=self.overall is None)
         running = RunningMeans(self.history, self.log_every, bar, self.tracker, self.postfix)
+        if self.parallel:  # the same restored RNG on every rank, then each its own stream (noise, dropout)
+            torch.manual_seed(int(torch.randint(2 ** 62, (1,))) + distributed.rank())
+        evaluate = evaluate if self.main else None  # measurements are rank 0's
         if evaluate is not None and self.step == 0 and not self.history:
             self._record_eval(0, evaluate(0, None))
         t0 = time.perf_counter()
@@ -126,7 +177,7 @@ class Trainer:
                 batches = None  # the last phase's data goes before the next one's is made
                 current, batches = phase, iter(phase.batches(step - start))
             self.model.train()
-            running.add(**phase.step(next(batches)))
+            running.add(**self._train_step(phase, next(batches)))
             done = self.step = step + 1
             running.end_step(done, total)
             if self.overall is not None:
@@ -141,6 +192,12 @@ class Trainer:
                 self.save(done)  # again, with the evaluation in its history
         bar.close()
         self.wall_s += time.perf_counter() - t0
+        if self.parallel:
+            distributed.leave()
+            if not self.main:
+                log.info("rank %d: training done, leaving the rest to rank 0", distributed.rank())
+                raise SystemExit(0)
+            self.parallel = False
         return self.history
 
     def _record_eval(self, step: int, values: dict) -> None:
@@ -159,6 +216,7 @@ class Trainer:
         """Close the tracker, draw the curves and record the final checkpoint and the plot as the
         stage's outputs. -> the plot."""
         self.tracker.close()
+        stage.metrics.update(ranks=self.ranks, accumulate=self.accumulate)
         record_checkpoint(stage, final)
         figure = plot_history(self.history, self.work / plot, title)
         stage.add_output(figure, kind="plot")

@@ -74,3 +74,34 @@ def test_fidelity_tool_reproduces_the_recorded_report_and_sweeps_the_detail_gate
         v = recorded[str(r["horizon"])]
         want = (v["plain_psnr"], v["plain_ssim"]) if r["detail_gate"] == 0 else (v["model_psnr"], v["model_ssim"])
         assert (r["model_psnr"], r["model_ssim"]) == pytest.approx(want, abs=1e-6)
+
+
+def test_open_loop_fine_tuning_keeps_the_latent_space_and_held_out_episodes_and_measures_the_start(demo_experiment,
+                                                                                                    contract):
+    import torch
+
+    from worldenv_core.stage import ConfigError
+
+    exp = demo_experiment
+    train_worldsim(cfg(exp, "expert_only=true"))  # (resumes the finished run of the tests above)
+    base = Manifest(exp).latest("train_worldsim", task="tiny", data="expert")
+    with pytest.raises(ConfigError, match="rollout.steps"):
+        train_worldsim(cfg(exp, "expert_only=true", f"init_from={base.id}"))
+    metrics = train_worldsim(cfg(exp, "expert_only=true", f"init_from={base.id}", "rollout.steps=6",
+                                 "rollout.chunks=2", "log_every=1"))
+    m = Manifest(exp)
+    tuned = m.latest("train_worldsim", task="tiny", data="expert")
+    assert tuned.id != base.id and base.id in tuned.inputs and metrics["steps"] == 6
+    folder = lambda rec: next(p for p in m.resolve(rec) if p.name == "model.safetensors").parent  # noqa: E731
+    (start, start_meta), (model, meta) = (load_checkpoint(folder(r), "worldsim", contract()) for r in (base, tuned))
+    assert meta["held_out"] == start_meta["held_out"] and meta["rollout_steps"] == 6
+    assert meta["kinematics"] == start_meta["kinematics"]
+    for name, value in start.state_dict().items():  # the latent space stays; the flow model trains
+        same = torch.equal(value, model.state_dict()[name])
+        assert same if not name.startswith("velocity.") or "num_batches" in name else True, name
+    assert any(not torch.equal(v, model.state_dict()[n]) for n, v in start.state_dict().items() if n.startswith("velocity."))
+    recorded = json.loads(next(p for p in m.resolve(base) if p.name == "fidelity.json").read_text())["fidelity"]
+    report = json.loads(next(p for p in m.resolve(tuned) if p.name == "fidelity.json").read_text())["fidelity"]
+    for h, v in report.items():  # the starting model, measured again on the same starts, scores what it recorded
+        assert (v["start_psnr"], v["start_ssim"]) == pytest.approx((recorded[h]["model_psnr"], recorded[h]["model_ssim"]),
+                                                                   abs=1e-6)

@@ -165,3 +165,40 @@ def test_static_snap_returns_small_changes_to_the_last_real_latent():
     torch.testing.assert_close(snap_static(z, anchor, 0.15)[0, :, :, 4, 4], torch.full((2, 4), 0.1125))
     with pytest.raises(ValueError, match="static_snap"):
         WorldSimulator(**{**TINY, "static_snap": -0.1})
+
+
+def test_latent_windows_for_open_loop_training_hold_the_real_past_and_several_chunks():
+    from types import SimpleNamespace
+
+    model = WorldSimulator(**{**TINY, "memory_offsets": (0, 2, 5)}).eval()
+    T, k = 20, model.chunk
+    z = torch.arange(T + 1, dtype=torch.float32)[:, None, None, None].expand(T + 1, 4, 16, 16).contiguous()
+    ep = SimpleNamespace(proprio=np.zeros((T + 1, 7), np.float32), actions=np.arange(T * 7, dtype=np.float32).reshape(T, 7),
+                         meta=SimpleNamespace(task_id=3), length=T)
+    one = LatentChunks([z], [ep], model.memory_offsets, k)
+    three = LatentChunks([z], [ep], model.memory_offsets, k, chunks_ahead=3)
+    assert len(one) == T and len(three) == T - 2 * k  # starts whose last chunk still has a step in the episode
+    item = three[3]  # t = 3
+    assert item["target"].shape[0] == item["actions"].shape[0] == item["valid"].shape[0] == 3 * k
+    assert item["past"][:, 0, 0, 0].tolist() == [0, 0, 0, 1, 2, 3]  # t-5 .. t, edge-padded at the start
+    torch.testing.assert_close(model.memory(item["past"][None])[0], item["memory"])  # depth 0 = teacher forcing
+    assert item["target"][:, 0, 0, 0].tolist() == list(range(4, 4 + 3 * k))
+    assert item["actions"][0, 0] == 3 * 7  # the action taken at t leads to frame t + 1
+    last = three[len(three) - 1]
+    assert last["valid"][2 * k:].tolist() == [True] + [False] * (k - 1)  # the last chunk: one step in, the rest masked
+    with pytest.raises(ValueError, match="chunks_ahead"):
+        LatentChunks([z], [ep], model.memory_offsets, k, chunks_ahead=0)
+
+
+def test_next_chunk_is_the_flow_prediction_from_the_history_with_the_static_snap():
+    torch.manual_seed(0)
+    model = WorldSimulator(**{**TINY, "noise_scale": 0.0, "sampling_steps": 1, "static_snap": 0.15}).eval()
+    torch.nn.init.normal_(model.velocity.out[-1].weight, std=0.1)
+    history, maps, acts = torch.randn(2, 5, 4, 16, 16), torch.rand(2, 4, 3, 32, 32), torch.randn(2, 4, 7)
+    anchor = history[:, 2]
+    z = model.next_chunk(history, anchor, maps, acts)
+    from worldenv_core.models.worldsim import snap_static
+
+    want = snap_static(model.predict_latents(history[:, [4, 2]], maps, acts), anchor, 0.15)
+    torch.testing.assert_close(z, want)
+    assert not z.requires_grad  # an input of the open-loop loss, not part of its graph

@@ -1,0 +1,128 @@
+"""Data-parallel training (worldenv_core/distributed.py): batch slices, settings checked before
+work, gradient accumulation equal to the whole batch, and a training stage run by torchrun over 2
+gloo ranks against the same stage in one process, killed and resumed."""
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from worldenv_core.distributed import shard, trainer_options
+from worldenv_core.errors import ConfigError
+from worldenv_core.manifest import Manifest
+from worldenv_core.models.checkpoint import load_weights
+from worldenv_core.training import Phase, Trainer, optimize
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_a_rank_takes_its_contiguous_slice_of_every_part_of_a_batch():
+    batch = (7, {"x": torch.arange(8), "names": list("abcdefgh"), "nested": (torch.ones(8, 2),)})
+    step, mine = shard(batch, 1, 2)
+    assert step == 7  # a step number is nobody's slice
+    assert mine["x"].tolist() == [4, 5, 6, 7] and mine["names"] == list("efgh") and mine["nested"][0].shape == (4, 2)
+    assert shard(batch, 0, 1) is batch
+
+
+def test_settings_that_cannot_split_the_batch_are_refused_before_training(monkeypatch):
+    cfg = OmegaConf.create({"train": {"batch_size": 6}, "accumulate": 2})
+    assert trainer_options(cfg, "train.batch_size") == {"accumulate": 2, "precision": "fp32"}
+    monkeypatch.setenv("WORLD_SIZE", "4")  # as torchrun would set it
+    with pytest.raises(ConfigError, match=r"train.batch_size=6 does not split over 4 rank\(s\) x 2 .*multiple of 8"):
+        trainer_options(cfg, "train.batch_size")
+    with pytest.raises(ConfigError, match="accumulate"):
+        trainer_options(OmegaConf.create({"accumulate": 0}))
+    with pytest.raises(ConfigError, match="precision"):
+        trainer_options(OmegaConf.create({"precision": "fp8"}))
+
+
+def _linear_run(work: Path, accumulate: int) -> torch.Tensor:
+    torch.manual_seed(0)
+    model = torch.nn.Linear(4, 1)
+    opt = torch.optim.SGD(model.parameters(), lr=0.1)
+    data = torch.Generator().manual_seed(1)
+    x, y = torch.randn(6, 8, 4, generator=data), torch.randn(6, 8, 1, generator=data)
+
+    def step(b):
+        loss = (model(b[0]) - b[1]).pow(2).mean()
+        optimize(loss, opt, clip=10.0)
+        return {"loss": loss.item()}
+    trainer = Trainer(work, model, {"opt": opt}, model_config={}, meta={}, log_every=1, checkpoint_every=100,
+                      progress=False, accumulate=accumulate)
+    trainer.fit([Phase("fit", 6, lambda start: iter(zip(x[start:], y[start:])), step)])
+    return torch.cat([model.weight.flatten(), model.bias]).detach()
+
+
+def test_gradient_accumulation_steps_as_the_whole_batch_would(tmp_path):
+    torch.testing.assert_close(_linear_run(tmp_path / "whole", 1), _linear_run(tmp_path / "in4", 4))
+
+
+POLICY = ["+task=tiny", "scale=tiny", "train.steps=20", "scale_head.steps=10", "train.log_every=5",
+          "train.checkpoint_every=5", "demos_per_task=1", "policy.hidden=32", "policy.backbone.widths=[8,8,8,8]",
+          "policy.backbone.keypoints=4", "train.augment_shift=0", "logger=none"]
+
+
+def _launch(ranks: int, exp: Path, *overrides: str, **popen) -> subprocess.Popen:
+    head = ([sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={ranks}"] if ranks > 1
+            else [sys.executable])
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    return subprocess.Popen([*head, "-m", "stages.train_policy", *POLICY, f"experiment_dir={exp}", *overrides],
+                            cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, **popen)
+
+
+def _finish(proc: subprocess.Popen) -> None:
+    _, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err[-3000:]
+
+
+def _weights(exp: Path) -> dict[str, torch.Tensor]:
+    m = Manifest(exp)
+    (path,) = [p for p in m.resolve(m.latest("train_policy")) if p.name == "model.safetensors"]
+    return load_weights(path)
+
+
+def _difference(a: dict, b: dict) -> float:
+    """|a - b| / |a| over all weights. Elementwise equality is not to be had: Adam's first steps move
+    a weight by about lr * sign(gradient), so float-order noise in a near-zero gradient shows at
+    full size on that weight."""
+    assert a.keys() == b.keys()
+    fa, fb = (torch.cat([w[k].float().flatten() for k in sorted(w)]) for w in (a, b))
+    return ((fa - fb).norm() / fa.norm()).item()
+
+
+@pytest.mark.sim
+@pytest.mark.slow
+@pytest.mark.timeout(1200)
+def test_two_gloo_ranks_train_like_one_process_and_a_killed_launch_resumes(_tiny_demos, tmp_path):
+    import shutil
+
+    exps = {name: tmp_path / name for name in ("one", "two", "half", "killed")}
+    for exp in exps.values():
+        shutil.copytree(_tiny_demos, exp)
+    _finish(_launch(1, exps["one"]))
+    _finish(_launch(2, exps["two"]))
+    _finish(_launch(1, exps["half"], "train.batch_size=8", "scale_head.batch_size=4"))
+    # the same effective batch split over 2 ranks: the same model up to float order and each rank
+    # normalising its loss by its own valid steps; one rank's half batch alone is another model
+    one, two, half = (_weights(exps[k]) for k in ("one", "two", "half"))
+    assert _difference(one, two) < 0.01 and _difference(one, half) > 5 * _difference(one, two)
+    (rec,) = Manifest(exps["two"]).find("train_policy")  # one record, from rank 0
+    assert rec.metrics["ranks"] == 2 and rec.metrics["steps"] == 30
+
+    proc = _launch(2, exps["killed"], start_new_session=True)
+    deadline = time.time() + 300
+    while time.time() < deadline and proc.poll() is None:
+        if any(int(p.name) >= 10 for p in exps["killed"].glob("train_policy/*/checkpoints/[0-9]*[0-9]")):
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, "the run ended before it could be killed"
+    os.killpg(proc.pid, signal.SIGKILL)  # torchrun and both ranks
+    proc.wait()
+    assert Manifest(exps["killed"]).find("train_policy") == [], "a killed launch records nothing"
+    _finish(_launch(1, exps["killed"]))  # resumed at another world size
+    assert _difference(two, _weights(exps["killed"])) < 0.01
