@@ -124,6 +124,7 @@ def run(cfg: DictConfig) -> dict:
         stage.metrics.update({"episodes": len(episodes), "held_out": len(held_eps), "steps": cfg.train.steps,
                               "training": describe_training(cfg), "train_wall_s": round(train_s, 1),
                               "eval_wall_s": round(time.perf_counter() - t1, 1), "device": str(device),
+                              "ranks": meta.get("ranks", 1),
                               **headline(report)})
         log.info("reflector saved to %s; metrics %s", final, json.dumps(stage.metrics))
     return stage.metrics

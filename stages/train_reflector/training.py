@@ -84,6 +84,7 @@ def train(cfg, model, model_cfg: dict, meta: dict, sampler: PrefixSampler, encod
             _mine(cfg, model, sampler, encoder, device, done)
 
     trainer.fit([Phase("bce", total, lambda start: per_step(draw, start), step)], after_step=after_step)
+    meta["ranks"] = trainer.ranks  # data-parallel ranks it trained on (torchrun), in its checkpoint and record
     trainer.tracker.close()
     return trainer.history
 

@@ -67,11 +67,25 @@ POLICY = ["+task=tiny", "scale=tiny", "train.steps=20", "scale_head.steps=10", "
           "policy.backbone.keypoints=4", "train.augment_shift=0", "logger=none"]
 
 
-def _launch(ranks: int, exp: Path, *overrides: str, **popen) -> subprocess.Popen:
+TINY = {
+    "train_policy": POLICY,
+    "train_worldsim": ["+task=tiny", "scale=tiny", "expert_only=true", "ae.steps=6", "flow.steps=6", "rollout.steps=4",
+                       "ae.batch_size=4", "flow.batch_size=4", "holdout_every=2", "log_every=2", "checkpoint_every=4",
+                       "worldsim.ae_widths=[8,16]", "worldsim.width=16", "worldsim.map_channels=4",
+                       "fidelity.horizons=[8]", "fidelity.starts_per_episode=1", "fidelity.videos=0", "logger=none"],
+    "train_reflector": ["+task=tiny", "scale=tiny", "expert_only=true", "train.steps=8", "train.batch_size=4",
+                        "train.log_every=2", "train.checkpoint_every=4", "train.mine.every=4", "holdout_every=2",
+                        "reflector.d_model=16", "reflector.layers=1", "reflector.heads=2",
+                        "reflector.frame_encoder.widths=[8,16]", "reflector.frame_encoder.keypoints=4", "plots=0",
+                        "imagined.enabled=false", "eta_folds=0", "logger=none"],
+}
+
+
+def _launch(ranks: int, exp: Path, *overrides: str, stage: str = "train_policy", **popen) -> subprocess.Popen:
     head = ([sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={ranks}"] if ranks > 1
             else [sys.executable])
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    return subprocess.Popen([*head, "-m", "stages.train_policy", *POLICY, f"experiment_dir={exp}", *overrides],
+    return subprocess.Popen([*head, "-m", f"stages.{stage}", *TINY[stage], f"experiment_dir={exp}", *overrides],
                             cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, **popen)
 
 
@@ -80,9 +94,9 @@ def _finish(proc: subprocess.Popen) -> None:
     assert proc.returncode == 0, err[-3000:]
 
 
-def _weights(exp: Path) -> dict[str, torch.Tensor]:
+def _weights(exp: Path, stage: str = "train_policy") -> dict[str, torch.Tensor]:
     m = Manifest(exp)
-    (path,) = [p for p in m.resolve(m.latest("train_policy")) if p.name == "model.safetensors"]
+    (path,) = [p for p in m.resolve(m.latest(stage)) if p.name == "model.safetensors"]
     return load_weights(path)
 
 
@@ -126,3 +140,20 @@ def test_two_gloo_ranks_train_like_one_process_and_a_killed_launch_resumes(_tiny
     assert Manifest(exps["killed"]).find("train_policy") == [], "a killed launch records nothing"
     _finish(_launch(1, exps["killed"]))  # resumed at another world size
     assert _difference(two, _weights(exps["killed"])) < 0.01
+
+
+@pytest.mark.sim
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+@pytest.mark.parametrize("stage", ["train_worldsim", "train_reflector"])
+def test_every_training_stage_runs_on_two_gloo_ranks(stage, _tiny_demos, tmp_path):
+    import shutil
+
+    one, two = tmp_path / "one", tmp_path / "two"
+    for exp in (one, two):
+        shutil.copytree(_tiny_demos, exp)
+    _finish(_launch(1, one, stage=stage))
+    _finish(_launch(2, two, stage=stage))
+    (rec,) = Manifest(two).find(stage)
+    assert rec.metrics["ranks"] == 2
+    assert _difference(_weights(one, stage), _weights(two, stage)) < 0.02
