@@ -168,6 +168,28 @@ def average_gradients(params) -> None:
         offset += n
 
 
+def random_rows(sample, shape, generator, **kwargs) -> torch.Tensor:
+    """`sample(shape, generator=..., **kwargs)` (torch.rand, torch.randn, ...) where `generator` is
+    one generator or a list of them, one per equal block of rows (a context's N rollouts): each
+    block's numbers then depend on its own generator alone, so a batch split over ranks draws
+    exactly what the whole batch would."""
+    if not isinstance(generator, (list, tuple)):
+        return sample(shape, generator=generator, **kwargs)
+    rows, rest = divmod(shape[0], len(generator))
+    if rest:
+        raise ValueError(f"{shape[0]} rows do not split into {len(generator)} equal blocks")
+    return torch.cat([sample((rows, *shape[1:]), generator=g, **kwargs) for g in generator])
+
+
+def gather(obj) -> list:
+    """Every rank's `obj` (any picklable value, tensors included), in rank order; [obj] alone."""
+    if world_size() <= 1:
+        return [obj]
+    out = [None] * world_size()
+    dist.all_gather_object(out, obj)
+    return out
+
+
 def mean_over_ranks(values: dict) -> dict:
     """Logged step values (losses) averaged over ranks, so rank 0's history is the global one."""
     if world_size() <= 1 or not values:

@@ -50,9 +50,11 @@ ENVS = ("imagined", "real")
 
 def validate(cfg: DictConfig) -> None:
     require_task(cfg)
-    if launched() > 1:  # its PPO step and imagined rollouts are not sharded over ranks yet (issue 24)
-        raise ConfigError(f"post_train_loop runs in one process, but torchrun launched {launched()}: run it with "
-                          "python -m (collection, evaluation and real rollouts fan out with workers= / launcher=ray)")
+    if launched() > 1 and cfg.env == "real":  # real rollouts fan out over worker processes instead
+        raise ConfigError(f"env=real runs in one process (its rollouts use workers=), but torchrun launched {launched()}")
+    if cfg.rl.contexts_per_iteration % launched():
+        raise ConfigError(f"rl.contexts_per_iteration={cfg.rl.contexts_per_iteration} does not split over the "
+                          f"{launched()} ranks torchrun launched: use a multiple of {launched()}")
     for key in ("rl.iterations", "rl.contexts_per_iteration", "rl.ppo_epochs", "rl.minibatch", "rl.horizon"):
         positive_int(cfg, key)
     positive_int(cfg, "eval.every", allow_zero=True)

@@ -13,16 +13,17 @@ from pathlib import Path
 
 import torch
 
+from worldenv_core import distributed
 from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.envs.replay import RealStart
 from worldenv_core.imagination.env import Context
 from worldenv_core.models.checkpoint import save_model
-from worldenv_core.rl.loop import RolloutBatch, collect_rollouts, informative_groups, ppo_update, select
+from worldenv_core.rl.loop import RolloutBatch, collect_rollouts, informative_groups, merge, ppo_update, select
 from worldenv_core.rl.real_rollouts import collect_real_rollouts
 from worldenv_core.training import Phase, per_step, step_seed
 
-# (frozen behaviour policy, the iteration's context indices, its generator) -> the rollouts
-Collect = Callable[[torch.nn.Module, list[int], torch.Generator], RolloutBatch]
+# (frozen behaviour policy, context indices, one generator per context) -> their rollouts
+Collect = Callable[[torch.nn.Module, list[int], list[torch.Generator]], RolloutBatch]
 
 
 def contexts_from_episodes(paths: list[Path], camera: str) -> list[Context]:
@@ -39,8 +40,8 @@ def real_starts(paths: list[Path]) -> tuple[list[RealStart], list[str]]:
 
 def imagined_collector(env, contexts: list[Context], n_rollouts: int, encode) -> Collect:
     """Rollouts in the imagined environment (the method)."""
-    return lambda behaviour, picks, g: collect_rollouts(behaviour, env, [contexts[i] for i in picks], n_rollouts,
-                                                        encode, generator=g)
+    return lambda behaviour, picks, gens: collect_rollouts(behaviour, env, [contexts[i] for i in picks], n_rollouts,
+                                                           encode, generator=gens)
 
 
 def real_collector(contract, starts: list[RealStart], instructions: list[str], n_rollouts: int, encode,
@@ -50,12 +51,12 @@ def real_collector(contract, starts: list[RealStart], instructions: list[str], n
     previous iteration must not reuse its cached weights), the previous one removed."""
     count = itertools.count()
 
-    def collect(behaviour, picks, g):
+    def collect(behaviour, picks, gens):
         for old in folder.glob("behaviour_*"):
             shutil.rmtree(old, ignore_errors=True)
         path = save_model(folder / f"behaviour_{next(count)}", behaviour, model_config, meta)  # weights copied to CPU
         return collect_real_rollouts(behaviour, path, contract, [starts[i] for i in picks],
-                                     [instructions[i] for i in picks], n_rollouts, encode, horizon, g, workers=workers,
+                                     [instructions[i] for i in picks], n_rollouts, encode, horizon, gens, workers=workers,
                                      progress=progress)
     return collect
 
@@ -64,15 +65,21 @@ def rl_phase(policy, optimizer, collect: Collect, n_contexts: int, rl, seed: int
     """One iteration = one step: N rollouts from each of a few contexts by the frozen behaviour
     policy (Algorithm 1 line 3), then `ppo_epochs` passes of PPO on their RLOO advantages, over
     the groups whose verdicts disagree (`rl.filter_groups`; none: no update this iteration).
-    An iteration's contexts, rollouts and minibatches are drawn from its own seed."""
+    An iteration's contexts, rollouts and minibatches are drawn from its own seed, each context's
+    rollouts from a generator of its own. In a torchrun launch every rank imagines its share of
+    the contexts, the rollouts are gathered, and every rank makes the same PPO update on all of
+    them (rollouts are the cost; the update is cheap and needs no gradient exchange)."""
     def step(g: torch.Generator) -> dict:
         t0 = time.perf_counter()
         picks = torch.randint(n_contexts, (rl.contexts_per_iteration,), generator=g).tolist()
+        streams = [torch.Generator().manual_seed(s) for s in torch.randint(2**62, (len(picks),), generator=g).tolist()]
+        mine = distributed.shard(list(range(len(picks))), distributed.rank(), distributed.world_size())
         behaviour = copy.deepcopy(policy).eval()
-        batch = collect(behaviour, picks, g)
+        batch = merge(distributed.gather(collect(behaviour, [picks[i] for i in mine], [streams[i] for i in mine])))
         keep = informative_groups(batch, rl.n_rollouts) if rl.filter_groups else torch.ones_like(batch.by_reflector)
         stats = (ppo_update(policy, optimizer, select(batch, keep), rl.ppo_epochs, rl.epsilon, rl.minibatch, generator=g)
                  if keep.any() else {})
+        distributed.broadcast_model(policy)  # the replicas made the same update; float noise must not make them drift
         return {"mean_reward": float(batch.rewards.mean()), "reflector_success_rate": float(batch.by_reflector.float().mean()),
                 "episode_length": float(batch.t_end.float().mean()), "mean_beta": batch.beta_mean,
                 "kept_groups": float(keep.float().mean()), **stats, "seconds": time.perf_counter() - t0}

@@ -11,6 +11,8 @@ import math
 
 import torch
 
+from worldenv_core.distributed import random_rows
+
 LOG2 = math.log(2.0)
 
 
@@ -27,8 +29,9 @@ def laplace_log_prob(action: torch.Tensor, mu: torch.Tensor, beta: torch.Tensor,
 
 def laplace_sample(mu: torch.Tensor, beta: torch.Tensor, generator: torch.Generator | None = None,
                    scale: float = 1.0) -> torch.Tensor:
-    """Draw a ~ Laplace(mu, scale * exp(beta)) by inverting the CDF of a uniform draw."""
-    u = torch.rand(mu.shape, generator=generator, device=mu.device, dtype=mu.dtype) - 0.5
+    """Draw a ~ Laplace(mu, scale * exp(beta)) by inverting the CDF of a uniform draw. `generator`
+    may be a list, one per equal block of rows (`distributed.random_rows`)."""
+    u = random_rows(torch.rand, mu.shape, generator, device=mu.device, dtype=mu.dtype) - 0.5
     u = u.clamp(-0.5 + 1e-7, 0.5 - 1e-7)  # keep log1p finite at the tails
     b = scale * torch.exp(beta)
     return mu - b * torch.sign(u) * torch.log1p(-2.0 * u.abs())

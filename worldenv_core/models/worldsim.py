@@ -21,6 +21,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from worldenv_core.distributed import random_rows
+
 
 def _groups(ch: int) -> int:
     return math.gcd(8, ch)
@@ -240,7 +242,8 @@ class WorldSimulator(nn.Module):
         noise_scale = self.noise_scale if noise_scale is None else float(noise_scale)
         b, k = action_maps.shape[:2]
         mem, maps, index, act = self._condition(memory, action_maps, actions)
-        x = torch.randn((b * k, *memory.shape[2:]), generator=generator, device=memory.device) * noise_scale
+        # rows are rollout-major, so a list of generators (one per rollout group) splits them by group
+        x = random_rows(torch.randn, (b * k, *memory.shape[2:]), generator, device=memory.device) * noise_scale
         for i in range(steps):
             t = torch.full((b * k,), i / steps, device=x.device)
             x = x + self.velocity(x, t, mem, maps, index, act) / steps

@@ -67,9 +67,12 @@ class RolloutBatch:
 
 @torch.no_grad()
 def collect_rollouts(policy, env, contexts: list, n_rollouts: int, encoder,
-                     generator: torch.Generator | None = None, observer=None, noise_scale: float = 1.0) -> RolloutBatch:
+                     generator: torch.Generator | list[torch.Generator] | None = None, observer=None,
+                     noise_scale: float = 1.0) -> RolloutBatch:
     """N rollouts per context from the frozen behaviour policy (Algorithm 1, lines 5-25): actions
     ~ Laplace(mu, exp(beta)); all C x N rollouts advance together until every one is done.
+    `generator`: one for the batch, or one per context, whose N rollouts then draw from it alone
+    (the same rollouts whichever other contexts share the batch: sharding over ranks).
     `observer` (e.g. `ImaginedRecorder`) sees the reset state and every step: `on_reset(state)`,
     `on_step(actions, mu, beta, state)` with actions and mu in the simulator's units. `noise_scale`
     multiplies the Laplace scale (1: the policy's own; evaluating a noisier or calmer variant)."""
@@ -101,6 +104,30 @@ def collect_rollouts(policy, env, contexts: list, n_rollouts: int, encoder,
                         actions=torch.stack(actions, 1), logp_old=torch.stack(logps, 1), mask=torch.stack(masks, 1),
                         rewards=rewards, advantages=advantages, t_end=state.t, by_reflector=state.by_reflector,
                         beta_mean=float(torch.stack(betas).mean()))
+
+
+def merge(parts: list[RolloutBatch]) -> RolloutBatch:
+    """Batches of disjoint contexts (one per rank) as one, in order: chunk dimensions padded to
+    the longest with mask 0 (a rank whose rollouts all ended sooner took fewer chunks)."""
+    if len(parts) == 1:
+        return parts[0]
+    chunks = max(p.mask.shape[1] for p in parts)
+
+    def cat(name):
+        return torch.cat([_pad_chunks(getattr(p, name), chunks) for p in parts])
+    n = [len(p.rewards) for p in parts]
+    return RolloutBatch(frames=cat("frames"), proprio=cat("proprio"), instruction=torch.cat([p.instruction for p in parts]),
+                        actions=cat("actions"), logp_old=cat("logp_old"), mask=cat("mask"),
+                        rewards=torch.cat([p.rewards for p in parts]), advantages=torch.cat([p.advantages for p in parts]),
+                        t_end=torch.cat([p.t_end for p in parts]), by_reflector=torch.cat([p.by_reflector for p in parts]),
+                        beta_mean=sum(p.beta_mean * k for p, k in zip(parts, n)) / sum(n))
+
+
+def _pad_chunks(x: torch.Tensor, chunks: int) -> torch.Tensor:
+    """(R, C, ...) -> (R, chunks, ...), the new chunks zeros (masked out; a frame never looked at)."""
+    if x.shape[1] == chunks:
+        return x
+    return torch.cat([x, x.new_zeros((x.shape[0], chunks - x.shape[1], *x.shape[2:]))], dim=1)
 
 
 def informative_groups(batch: RolloutBatch, n_rollouts: int) -> torch.Tensor:

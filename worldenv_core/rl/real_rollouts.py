@@ -23,6 +23,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from worldenv_core.distributed import random_rows
+
 from worldenv_core.contract import TaskContract
 from worldenv_core.envs.replay import RealStart
 from worldenv_core.rl.loop import RolloutBatch, rloo_advantages
@@ -91,12 +93,13 @@ def real_rollout(job: RealRolloutJob) -> dict:
 
 def collect_real_rollouts(behaviour, behaviour_path: str | Path, contract: TaskContract, starts: list[RealStart],
                           instructions: list[str], n_rollouts: int, encoder, horizon: int,
-                          generator: torch.Generator, workers: int | None = None, launcher: str = "local",
+                          generator: torch.Generator | list[torch.Generator], workers: int | None = None, launcher: str = "local",
                           ray_address: str | None = None, progress: bool = False,
                           noise_scale: float = 1.0) -> RolloutBatch:
     """N real rollouts per context (context-major, as `collect_rollouts` draws them) by the
     behaviour policy saved at `behaviour_path` (whose weights are `behaviour`'s), as a
-    `RolloutBatch`: reward 1 for a success, 0 otherwise; `by_reflector` marks the successes."""
+    `RolloutBatch`: reward 1 for a success, 0 otherwise; `by_reflector` marks the successes.
+    `generator`: one, or one per context (`distributed.random_rows`)."""
     from worldenv_core.models.laplace import laplace_log_prob
     from worldenv_core.parallel import run_jobs
 
@@ -104,7 +107,8 @@ def collect_real_rollouts(behaviour, behaviour_path: str | Path, contract: TaskC
         raise ValueError(f"RLOO needs at least 2 rollouts per context, got N={n_rollouts}")
     chunk = contract.chunk
     horizon = -(-int(horizon) // chunk) * chunk
-    seeds = torch.randint(2**31 - 1, (len(starts) * n_rollouts,), generator=generator).tolist()
+    seeds = random_rows(lambda shape, generator: torch.randint(2**31 - 1, shape, generator=generator),
+                        (len(starts) * n_rollouts,), generator).tolist()
     lang = encoder([instructions[i // n_rollouts] for i in range(len(seeds))]).float().cpu()
     jobs = [RealRolloutJob(contract, starts[i // n_rollouts], str(behaviour_path), s, lang[i].numpy(), horizon, noise_scale,
                            index=i) for i, s in enumerate(seeds)]

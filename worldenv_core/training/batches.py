@@ -3,6 +3,7 @@ per-step seeds and augmentation every training stage uses the same way."""
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Iterator
 from itertools import count
 from typing import TypeVar
@@ -14,9 +15,13 @@ T = TypeVar("T")
 
 
 def pick_device(name: str = "auto") -> torch.device:
+    """`auto`: CUDA when there is one. A rank of a torchrun launch gets its own GPU (LOCAL_RANK)."""
     if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    device = torch.device(name)
+    if device.type == "cuda" and device.index is None and int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+    return device
 
 
 def batches(dataset: Dataset, batch_size: int, seed: int, start_step: int = 0, num_workers: int = 0) -> Iterator[dict]:

@@ -74,11 +74,10 @@ class ActionRewardEnv:
         return self.state
 
 
-def test_a_tiny_loop_improves_a_synthetic_reward():
+def _policy_and_contexts(n_contexts: int = 2):
     from hydra.utils import instantiate
 
     from worldenv_core.imagination.env import Context
-    from worldenv_core.rl.loop import collect_rollouts, policy_param_groups, ppo_update
 
     torch.manual_seed(0)
     policy = instantiate({"_target_": "worldenv_core.models.policy.LaplacePolicy", "cameras": ["agentview"], "chunk": 4,
@@ -88,8 +87,14 @@ def test_a_tiny_loop_improves_a_synthetic_reward():
     g = torch.Generator().manual_seed(0)
     contexts = [Context(task_id=0, instruction=f"task {i}", frame=torch.randint(0, 255, (3, 16, 16), generator=g,
                                                                                    dtype=torch.uint8),
-                        proprio=torch.zeros(7)) for i in range(2)]
-    encoder = lambda texts: torch.ones(len(texts), 8)  # noqa: E731
+                        proprio=torch.zeros(7)) for i in range(n_contexts)]
+    return policy, contexts, lambda texts: torch.ones(len(texts), 8)
+
+
+def test_a_tiny_loop_improves_a_synthetic_reward():
+    from worldenv_core.rl.loop import collect_rollouts, policy_param_groups, ppo_update
+
+    policy, contexts, encoder = _policy_and_contexts()
     opt = torch.optim.Adam(policy_param_groups(policy, 1e-3, 1e-2))
     env, rewards = ActionRewardEnv(), []
     for it in range(12):
@@ -99,6 +104,30 @@ def test_a_tiny_loop_improves_a_synthetic_reward():
         rewards.append(batch.rewards.mean().item())
         ppo_update(policy, opt, batch, epochs=2, epsilon=0.1, minibatch=8, generator=torch.Generator().manual_seed(it))
     assert sum(rewards[-3:]) / 3 > sum(rewards[:3]) / 3 + 0.15, rewards
+
+
+def test_rollouts_drawn_per_context_are_the_same_however_the_contexts_are_split():
+    """What sharding imagined rollouts over ranks relies on: a context's N rollouts depend on its
+    own generator, not on which contexts share its batch; the parts merge back into the batch."""
+    from worldenv_core.rl.loop import collect_rollouts, merge
+
+    policy, contexts, encoder = _policy_and_contexts(3)
+    streams = lambda: [torch.Generator().manual_seed(s) for s in (11, 12, 13)]  # noqa: E731
+    whole = collect_rollouts(policy, ActionRewardEnv(), contexts, 4, encoder, streams())
+    g = streams()
+    parts = [collect_rollouts(policy, ActionRewardEnv(), contexts[:1], 4, encoder, g[:1]),
+             collect_rollouts(policy, ActionRewardEnv(), contexts[1:], 4, encoder, g[1:])]
+    merged = merge(parts)
+    for name in ("actions", "logp_old", "mask", "rewards", "advantages", "frames", "instruction"):
+        torch.testing.assert_close(getattr(merged, name), getattr(whole, name), msg=name)
+    one_generator = collect_rollouts(policy, ActionRewardEnv(), contexts, 4, encoder, torch.Generator().manual_seed(11))
+    assert not torch.allclose(one_generator.actions[4:], whole.actions[4:])  # the split-free draw is another one
+    short = parts[0]  # a part whose rollouts all ended a chunk sooner: padded, and the padding masked
+    short.frames, short.proprio, short.actions = short.frames[:, :1], short.proprio[:, :1], short.actions[:, :1]
+    short.logp_old, short.mask = short.logp_old[:, :1], short.mask[:, :1]
+    padded = merge([short, parts[1]])
+    assert padded.actions.shape == whole.actions.shape and (padded.mask[:4, 1] == 0).all()
+    assert (padded.mask[4:] == whole.mask[4:]).all()
 
 
 def test_groups_whose_verdicts_all_agree_are_dropped_before_ppo():
