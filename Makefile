@@ -12,7 +12,7 @@ export MUJOCO_GL ?= egl
 export HF_HUB_OFFLINE := 1
 export TOKENIZERS_PARALLELISM := false
 
-.PHONY: setup test test-fast faults smoke pipeline suites eval-release fidelity bench expert-table tensorboard clean
+.PHONY: setup test test-fast faults smoke pipeline suites eval-release fidelity bench cost-model expert-table tensorboard clean
 
 setup: $(STAMP)
 
@@ -100,6 +100,11 @@ tensorboard: setup
 
 bench: setup
 	$(PY) -m benchmarks.bench
+
+# What each training stage costs per step at scale=small and scale=paper on this machine, and the
+# hours a whole run needs (docs/scaling.md#what-paper-scale-costs).
+cost-model: setup
+	$(PY) -m benchmarks.training_cost --scales small paper --json docs/cost_model.json
 
 clean:
 	rm -rf outputs/* data/*
