@@ -138,13 +138,19 @@ def micro_batch(index: int, count: int):
         _ACC.micro, _ACC.count = previous
 
 
+def last_micro_batch() -> bool:
+    """Whether the optimizer steps after this micro-batch (always, without accumulation): what
+    runs once per step besides it (an EMA update) checks this."""
+    return _ACC.micro == _ACC.count - 1
+
+
 def backward(loss: torch.Tensor, optimizer: torch.optim.Optimizer) -> bool:
     """Accumulate `loss`'s gradient; True when this is the micro-batch that steps, with the
     gradients already averaged over ranks."""
     if _ACC.micro == 0:
         optimizer.zero_grad(set_to_none=True)
     (loss / _ACC.count if _ACC.count > 1 else loss).backward()
-    if _ACC.micro < _ACC.count - 1:
+    if not last_micro_batch():
         return False
     average_gradients([p for g in optimizer.param_groups for p in g["params"]])
     return True

@@ -8,6 +8,7 @@ from itertools import count
 
 import torch
 
+from worldenv_core import distributed
 from worldenv_core.kinematics.action_map import draw_action_maps_per_rollout
 from worldenv_core.kinematics.camera import PinholeCamera
 from worldenv_core.models.worldsim_data import LatentChunks, encode_episode_frames
@@ -98,6 +99,8 @@ def rollout_phase(model, ema, optimizer, episodes, cameras, cfg, device) -> Phas
 
 @torch.no_grad()
 def _update_ema(ema, model, decay: float) -> None:
+    if not distributed.last_micro_batch():  # once per optimizer step, after it
+        return
     for pe, p in zip(ema.parameters(), model.parameters()):
         pe.lerp_(p, 1 - decay)
     for be, bm in zip(ema.buffers(), model.buffers()):

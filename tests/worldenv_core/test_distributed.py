@@ -149,11 +149,7 @@ def test_two_gloo_ranks_train_like_one_process_and_a_killed_launch_resumes(_tiny
 def test_every_training_stage_runs_on_two_gloo_ranks(stage, _tiny_demos, tmp_path):
     import shutil
 
-    one, two = tmp_path / "one", tmp_path / "two"
-    for exp in (one, two):
-        shutil.copytree(_tiny_demos, exp)
-    _finish(_launch(1, one, stage=stage))
-    _finish(_launch(2, two, stage=stage))
-    (rec,) = Manifest(two).find(stage)
-    assert rec.metrics["ranks"] == 2
-    assert _difference(_weights(one, stage), _weights(two, stage)) < 0.02
+    shutil.copytree(_tiny_demos, tmp_path / "two")
+    _finish(_launch(2, tmp_path / "two", stage=stage))
+    (rec,) = Manifest(tmp_path / "two").find(stage)  # one record, rank 0's
+    assert rec.metrics["ranks"] == 2 and _weights(tmp_path / "two", stage)
