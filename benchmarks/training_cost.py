@@ -200,7 +200,8 @@ def main() -> None:
     rows = []
     for scale in args.scales:
         for stage in args.stages:
-            rows.append({"stage": stage, "scale": scale, **measure(stage, scale, args.task, args.repeats, args.threads)})
+            row = measure(stage, scale, args.task, args.repeats, args.threads)
+            rows.append({"stage": stage, "scale": scale, **row})
             print(json.dumps(rows[-1]), flush=True)
     print(table(rows))
     if args.json:

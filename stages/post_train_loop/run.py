@@ -51,7 +51,8 @@ ENVS = ("imagined", "real")
 def validate(cfg: DictConfig) -> None:
     require_task(cfg)
     if launched() > 1 and cfg.env == "real":  # real rollouts fan out over worker processes instead
-        raise ConfigError(f"env=real runs in one process (its rollouts use workers=), but torchrun launched {launched()}")
+        raise ConfigError(f"env=real runs in one process (its rollouts use workers=), but torchrun launched "
+                          f"{launched()}")
     if cfg.rl.contexts_per_iteration % launched():
         raise ConfigError(f"rl.contexts_per_iteration={cfg.rl.contexts_per_iteration} does not split over the "
                           f"{launched()} ranks torchrun launched: use a multiple of {launched()}")

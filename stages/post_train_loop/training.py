@@ -56,8 +56,8 @@ def real_collector(contract, starts: list[RealStart], instructions: list[str], n
             shutil.rmtree(old, ignore_errors=True)
         path = save_model(folder / f"behaviour_{next(count)}", behaviour, model_config, meta)  # weights copied to CPU
         return collect_real_rollouts(behaviour, path, contract, [starts[i] for i in picks],
-                                     [instructions[i] for i in picks], n_rollouts, encode, horizon, gens, workers=workers,
-                                     progress=progress)
+                                     [instructions[i] for i in picks], n_rollouts, encode, horizon, gens,
+                                     workers=workers, progress=progress)
     return collect
 
 
