@@ -8,13 +8,13 @@ on the weights), synthetic batches of the configured shapes, the median over rep
 optimisation step (forward, backward, optimizer), and the process's peak resident memory.
 post_train_loop: one iteration's imagined rollouts (C contexts x N rollouts, world model + reflector
 + policy per chunk) timed over 2 chunks and scaled to the horizon, plus its PPO epochs.
-Data-parallel ranks divide a step's time by up to their number (the batch splits; an all-reduce
-is added): docs/scaling.md holds the table this prints, beside the GPU figures when measured.
+docs/scaling.md holds the table this prints (CPU); GPU figures are for a run on a GPU.
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import resource
 import statistics
@@ -73,7 +73,7 @@ def worldsim_cost(cfg, repeats: int) -> dict:
     from stages.train_worldsim.training import ae_phase, flow_phase
 
     model = instantiate(OmegaConf.to_container(cfg.worldsim, resolve=True), _convert_="all")
-    ema = instantiate(OmegaConf.to_container(cfg.worldsim, resolve=True), _convert_="all").requires_grad_(False)
+    ema = copy.deepcopy(model).requires_grad_(False)
     size, k, m = cfg.task.image_size, model.chunk, len(model.memory_offsets)
     opt_ae = torch.optim.AdamW(model.autoencoder.parameters(), lr=1e-3)
     opt_flow = torch.optim.AdamW(model.velocity.parameters(), lr=3e-4)
@@ -93,8 +93,7 @@ def worldsim_cost(cfg, repeats: int) -> dict:
 
 
 def _reflector(cfg):
-    model = instantiate(OmegaConf.to_container(cfg.reflector, resolve=True), _convert_="all")
-    return model
+    return instantiate(OmegaConf.to_container(cfg.reflector, resolve=True), _convert_="all")
 
 
 def reflector_cost(cfg, repeats: int) -> dict:

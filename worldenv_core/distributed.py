@@ -52,17 +52,14 @@ def is_main() -> bool:
     return rank() == 0
 
 
-def init(device: torch.device) -> torch.device:
-    """Join the process group torchrun describes in the environment (no-op for one process).
-    CUDA ranks get their local GPU (nccl); CPU ranks use gloo. -> the device this rank trains on."""
-    if launched() <= 1:
-        return device
+def init(device: torch.device) -> None:
+    """Join the process group torchrun describes in the environment (no-op for one process): nccl
+    on the rank's GPU (`training.pick_device` gives each rank its LOCAL_RANK one), gloo on CPUs."""
+    if launched() <= 1 or dist.is_initialized():
+        return
     if device.type == "cuda":
-        device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
         torch.cuda.set_device(device)
-    if not dist.is_initialized():
-        dist.init_process_group("nccl" if device.type == "cuda" else "gloo", timeout=timedelta(hours=2))
-    return device
+    dist.init_process_group("nccl" if device.type == "cuda" else "gloo", timeout=timedelta(hours=2))
 
 
 def leave() -> None:

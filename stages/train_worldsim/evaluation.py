@@ -86,13 +86,13 @@ def evaluate_fidelity(cfg, model, kinematics, cameras, held_eps, work: Path, bas
               "beats_copy_baseline": bool(fidelity) and all(v["model_psnr"] > v["copy_psnr"] for v in fidelity.values()),
               "beats_copy_baseline_ssim": bool(fidelity) and all(v["model_ssim"] > v["copy_ssim"] for v in fidelity.values())}
     (work / "fidelity.json").write_text(json.dumps(report, indent=2))
-    plain = lambda v, k: f"{v[k]:.3f}" if k in v else "-"  # noqa: E731
+    fmt = lambda v, k: f"{v[k]:.3f}" if k in v else "-"  # noqa: E731 (a figure only some runs have)
     md = markdown_table(["horizon (steps)", "PSNR model", "PSNR copy-last", "SSIM model", "SSIM copy-last",
                          "PSNR / SSIM plain decoding", "PSNR / SSIM / SSIM moving: starting model",
                          "SSIM static: model / copy", "SSIM moving: model / copy", "moving share", "n"],
                         [[h, f"{v['model_psnr']:.2f}", f"{v['copy_psnr']:.2f}", f"{v['model_ssim']:.3f}",
-                          f"{v['copy_ssim']:.3f}", f"{plain(v, 'plain_psnr')} / {plain(v, 'plain_ssim')}",
-                          f"{plain(v, 'start_psnr')} / {plain(v, 'start_ssim')} / {plain(v, 'start_ssim_moving')}",
+                          f"{v['copy_ssim']:.3f}", f"{fmt(v, 'plain_psnr')} / {fmt(v, 'plain_ssim')}",
+                          f"{fmt(v, 'start_psnr')} / {fmt(v, 'start_ssim')} / {fmt(v, 'start_ssim_moving')}",
                           f"{v['model_ssim_static']:.3f} / {v['copy_ssim_static']:.3f}",
                           f"{v['model_ssim_moving']:.3f} / {v['copy_ssim_moving']:.3f}", f"{v['moving_fraction']:.2f}",
                           v["n"]] for h, v in sorted(fidelity.items())])

@@ -95,7 +95,7 @@ def run(cfg: DictConfig) -> dict:
         meta = {"kind": "worldsim", **contract.meta(), "camera": cfg.camera, "kinematics": kinematics.to_dict(),
                 "cameras": {str(t): c.to_dict() for t, c in cameras.items()}, "episodes": len(episodes),
                 "expert_only": bool(cfg.expert_only), "held_out": [episode_key(p) for p in held],
-                "rollout_steps": int(cfg.rollout.steps), **({"init_from": base_meta.get("step")} if base else {})}
+                "rollout_steps": int(cfg.rollout.steps), **({"init_from_step": base_meta.get("step")} if base else {})}
         trainer = Trainer(work, model, optimizers, model_config=model_cfg, meta=meta, desc="train_worldsim",
                           log_every=cfg.log_every, checkpoint_every=cfg.checkpoint_every,
                           extra_state=lambda: {"ema": ema.state_dict()},

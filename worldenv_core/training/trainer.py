@@ -114,8 +114,9 @@ class Trainer:
         self.accumulate, self.precision = int(accumulate), precision
         self.parallel = parallel and distributed.launched() > 1
         self.ranks = distributed.launched() if self.parallel else 1  # what the run trains over (recorded)
+        device = next(model.parameters()).device
+        self.bf16 = precision == "bf16" and device.type == "cuda"  # CPU runs stay fp32
         if self.parallel:
-            device = next(model.parameters()).device
             distributed.init(device)
         self.checkpoints = Checkpoints(self.work, keep)
         self.step, self.history = self.checkpoints.restore(model, optimizers)
@@ -123,10 +124,6 @@ class Trainer:
         if self.parallel:
             distributed.broadcast_model(model)
         self.wall_s = 0.0  # this sitting's training time
-
-    @property
-    def world_size(self) -> int:
-        return distributed.launched() if self.parallel else 1
 
     def save(self, done: int) -> Path | None:
         """A resumable checkpoint at step `done` (the model, optimizers, RNG states, history); rank 0's."""
@@ -138,12 +135,10 @@ class Trainer:
     def _train_step(self, phase: Phase, batch) -> dict:
         """This rank's slice of the global batch, in `accumulate` micro-batches -> the step's values,
         averaged over micro-batches and ranks."""
-        mine = distributed.shard(batch, distributed.rank(), self.world_size) if self.parallel else batch
-        device = next(self.model.parameters()).device
-        autocast = (torch.autocast("cuda", dtype=torch.bfloat16) if self.precision == "bf16" and device.type == "cuda"
-                    else nullcontext())
+        mine = distributed.shard(batch, distributed.rank(), self.ranks) if self.parallel else batch
         values: dict[str, float] = {}
         for i in range(self.accumulate):
+            autocast = torch.autocast("cuda", dtype=torch.bfloat16) if self.bf16 else nullcontext()
             with distributed.micro_batch(i, self.accumulate), autocast:
                 part = phase.step(distributed.shard(mine, i, self.accumulate))
             for k, v in part.items():
