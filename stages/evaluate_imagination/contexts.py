@@ -1,6 +1,8 @@
 """The contexts paired replay starts from, none of which the world model or the reflector trained
 on: the first benchmark init states of each task (collections start from fresh placements), and
-frames in the middle of held-out episodes (held out by both the world model and the reflector)."""
+frames in the middle of held-out episodes (held out by both the world model and the reflector).
+With `contexts.source=training`, frames of training episodes instead: pairs to train a reflector
+on (imagined video labelled with the real outcome of the same actions), not a measurement."""
 
 from __future__ import annotations
 
@@ -54,27 +56,32 @@ def mid_episode_frames(success: np.ndarray, length: int, n: int) -> list[int]:
     return sorted({int(round(end * (i + 1) / (n + 1))) for i in range(n)} - {0})
 
 
-def held_out_by_both(manifest, stage, contract: TaskContract, scale: str, worldsim: str, reflector: str) -> list[Path]:
-    """Collected episodes that neither the world model nor the reflector trained on (their
-    checkpoints list their held-out episodes)."""
-    unseen = None
+def context_episodes(manifest, stage, contract: TaskContract, scale: str, worldsim: str, reflector: str,
+                     source: str = "held_out") -> list[Path]:
+    """Collected episodes the contexts start in. `held_out`: those neither the world model nor the
+    reflector trained on (their checkpoints list their held-out episodes): the measurement.
+    `training`: those the world model trained on, the reflector's held-out ones excepted: pairs
+    that become a reflector's training data (`train_reflector train.pairs_from`), never a figure."""
+    held = {}
     for path in (worldsim, reflector):
         keys = read_config(path)["meta"].get("held_out")
         if keys is None:
-            raise ConfigError(f"{path} does not list the episodes it held out; retrain it to pair on held-out episodes")
-        unseen = set(keys) if unseen is None else unseen & set(keys)
+            raise ConfigError(f"{path} does not list the episodes it held out; retrain it to pair on its episodes")
+        held[path] = set(keys)
     expert_only = bool(read_config(worldsim)["meta"].get("expert_only", False))
     try:
         paths = collected_episodes(manifest, stage, contract.name, scale, expert_only)
     except MissingEpisodesError:  # released checkpoints beside a re-collected expert set: contexts from the demos
-        log.info("no policy rollouts collected here: mid-episode contexts from the held-out expert demos only")
+        log.info("no policy rollouts collected here: mid-episode contexts from the expert demos only")
         paths = collected_episodes(manifest, stage, contract.name, scale, True)
-    return [p for p in paths if episode_key(p) in unseen]
+    if source == "training":
+        return [p for p in paths if episode_key(p) not in held[worldsim] | held[reflector]]
+    return [p for p in paths if episode_key(p) in held[worldsim] & held[reflector]]
 
 
 def build_contexts(cfg, contract: TaskContract, held: list[Path]) -> list[PairedContext]:
     """init_states benchmark init states per task, then episode_frames frames of the first
-    episodes_per_task held-out episodes of each task."""
+    episodes_per_task of `held` (the context episodes) of each task."""
     c, camera = cfg.contexts, contract.cameras[0]
     tasks = contract.resolved_task_ids()
     jobs = [StartFrameJob(contract, RealStart(task_id=t, init_state=i)) for t in tasks for i in range(c.init_states)]

@@ -222,7 +222,8 @@ def _replay_eta(r: dict) -> str:
 def section(ctx: ReportContext, limit: int = 8) -> list[str]:
     """One row per recent run (the before/after table of the levers), then the newest run's
     policies, tasks, frames along the pairs, plot and GIFs."""
-    runs = ctx.find("evaluate_imagination")[-limit:]
+    # pairs on training contexts are a reflector's training data (contexts=training), not a measurement
+    runs = [r for r in ctx.find("evaluate_imagination") if r.tags.get("contexts") != "training"][-limit:]
     if not runs:
         return []
     rows = []

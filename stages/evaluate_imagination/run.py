@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig
 
-from stages.evaluate_imagination.contexts import build_contexts, held_out_by_both
+from stages.evaluate_imagination.contexts import build_contexts, context_episodes
 from stages.evaluate_imagination.evaluation import Variant, pair_variant, summarise, write_outputs
 from stages.evaluate_imagination.judges import Judge, judge_pairs
 from stages.report import write_report
@@ -43,6 +43,12 @@ def validate(cfg: DictConfig) -> None:
     for key in ("closed_loop_rollouts", "gifs", "contexts.init_states", "contexts.episodes_per_task",
                 "contexts.episode_frames"):
         positive_int(cfg, key, allow_zero=True)
+    if cfg.contexts.source not in ("held_out", "training"):
+        raise ConfigError(f"contexts.source must be held_out or training, got {cfg.contexts.source!r}")
+    if cfg.contexts.source == "training" and (cfg.contexts.init_states or not cfg.contexts.episodes_per_task):
+        raise ConfigError("contexts.source=training pairs from mid-episode frames of training episodes only (reflector "
+                          "training data; the benchmark init states are the evaluations'): set contexts.init_states=0 "
+                          "and contexts.episodes_per_task > 0")
     if cfg.contexts.init_states > 50:
         raise ConfigError(f"contexts.init_states is at most 50 (the benchmark has 50 per task), got {cfg.contexts.init_states}")
     if not cfg.contexts.init_states and not (cfg.contexts.episodes_per_task and cfg.contexts.episode_frames):
@@ -81,6 +87,8 @@ def run(cfg: DictConfig) -> dict:
         variants = [Variant(v.name, v.path, v.noise_scale, paired=i < cfg.paired_policies) for i, v in enumerate(variants)]
         stage.record.tags.update({"eta": eta, "sampling_steps": cfg.sampling_steps, "sampler_noise": cfg.sampler_noise,
                                   "worldsim": _name(worldsim), "reflector": _name(reflector)})
+        if cfg.contexts.source == "training":  # reflector training data, not a measurement: the report tells them apart
+            stage.record.tags["contexts"] = "training"
         encoder = InstructionEncoder()
         encode = lambda s: encoder(s).to(device)  # noqa: E731
         env, camera = build_imagined_env(worldsim, reflector, eta, encode, cfg.horizon, cfg.sampling_steps, device, contract,
@@ -88,7 +96,7 @@ def run(cfg: DictConfig) -> dict:
         if camera != contract.cameras[0]:
             raise ConfigError(f"the world model imagines {camera!r} but task {contract.name} renders {contract.cameras[0]!r} first")
         # init-state contexts alone need no recorded episode: checkpoint folders are enough
-        held = (held_out_by_both(manifest, stage, contract, cfg.scale.name, worldsim, reflector)
+        held = (context_episodes(manifest, stage, contract, cfg.scale.name, worldsim, reflector, cfg.contexts.source)
                 if cfg.contexts.episodes_per_task and cfg.contexts.episode_frames else [])
         contexts = build_contexts(cfg, contract, held)
         log.info("paired replay of %d policies x %d contexts (%d init states, %d mid-episode) x %d rollouts; eta %.2f; "
