@@ -12,9 +12,10 @@ import numpy as np
 import torch
 
 from stages.evaluate_imagination.contexts import PairedContext
-from stages.evaluate_imagination.judges import Judge, store_pair_frames
+from stages.evaluate_imagination.judges import Judge
 from worldenv_core.contract import TaskContract
 from worldenv_core.envs.replay import PairedReplayJob, replay_context
+from worldenv_core.imagination.pairs import store_pair_frames
 from worldenv_core.imagination.verdict import (as_judged_by, eta_curve, evaluator_metrics, frame_metrics, imagine, judge,
                                                pair, per_task, replay_eta, terminal_reward, verdict_metrics)
 from worldenv_core.models.checkpoint import load_checkpoint

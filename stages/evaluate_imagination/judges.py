@@ -27,15 +27,6 @@ class Judge:
     eta: float
 
 
-def store_pair_frames(path: Path, imagined: dict[int, np.ndarray], real: dict[int, np.ndarray]) -> None:
-    """One pair's frames at every check, step order (H, W, 3 uint8 each), written whole or not at all."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.stem + ".tmp.npz")
-    np.savez_compressed(tmp, imagined=np.stack([imagined[s] for s in sorted(imagined)]),
-                        real=np.stack([real[s] for s in sorted(real)]))
-    tmp.replace(path)
-
-
 def judge_pairs(rows: list[dict], frames_dir: Path, judges: list[Judge], load, instruction_of, encoder) -> bool:
     """Score every row's stored frames with each judge it has no scores of yet (`row["more_reflectors"]`).
     `load(judge) -> reward model`; `instruction_of(row) -> str`. -> whether anything was added."""

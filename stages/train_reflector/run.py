@@ -19,6 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 from stages.train_reflector.evaluation import evaluate_held_out, headline
 from stages.train_reflector.training import cross_validate_eta, fit, imagined_copies
 from worldenv_core.data.selection import collected_episodes, episode_key, load_split
+from worldenv_core.imagination.pairs import checked_episodes
 from worldenv_core.manifest import StageRun
 from worldenv_core.models.checkpoint import save_model
 from worldenv_core.rl.termination import check_eta
@@ -53,6 +54,9 @@ def validate(cfg: DictConfig) -> None:
                           f"({cfg.train.checkpoint_every}) so a resumed run mines what it mined; got {cfg.train.mine.every}")
     if not 0.0 <= cfg.train.mine.threshold <= 1.0:
         raise ConfigError(f"train.mine.threshold must be in [0, 1], got {cfg.train.mine.threshold}")
+    if cfg.train.pairs_from and cfg.eta_folds:
+        raise ConfigError("train.pairs_from with eta_folds: the folds split real episodes, not pairs; train with "
+                          "eta_folds=0 and read the eta chosen on held-out replays off evaluate_imagination's report")
     trainer_options(cfg, "train.batch_size")
     if cfg.train.batch_size < 2:
         raise ConfigError("train.batch_size must be at least 2 (half positives, half negatives)")
@@ -70,6 +74,7 @@ def describe_training(cfg) -> str:
     return ", ".join([f"{cfg.train.steps} steps", f"label delay {cfg.train.label_delay}",
                       f"mining every {mine.every} > {mine.threshold}" if mine.every else "no mining"]
                      + (["+ imagined replays"] if cfg.train.with_imagined else [])
+                     + (["+ paired rollouts (real labels)"] if cfg.train.pairs_from else [])
                      + (["on the world model's latent"] if sees_world_latent(cfg) else []))
 
 
@@ -84,8 +89,12 @@ def run(cfg: DictConfig) -> dict:
         paths = collected_episodes(manifest, stage, contract.name, cfg.scale.name, cfg.expert_only)
         train_paths, held, episodes, held_eps = load_split(paths, cfg.holdout_every, cfg.camera)
         key = {k: v for k, v in config.items() if k not in ("imagined", "plots", "eta_folds")}
-        # train.with_imagined is named by the world model it imagines with (below), if on
-        key["train"] = {k: v for k, v in key["train"].items() if k != "with_imagined"}
+        # train.with_imagined is named by the world model it imagines with (below), if on; pairs_from by
+        # the pair folders, if any (so a reflector trained without pairs keeps its work dir)
+        key["train"] = {k: v for k, v in key["train"].items() if k not in ("with_imagined", "pairs_from")}
+        pairs, pair_folders = paired_training(cfg, stage, contract, episodes, held)
+        if pair_folders:
+            key["train"]["pairs_from"] = pair_folders
         dreamed, worldsim = None, None
         if cfg.train.with_imagined or sees_world_latent(cfg):  # the world model it imagines with (or sees through)
             worldsim = resolve_checkpoint(stage, cfg.imagined.worldsim_from, "train_worldsim", contract.name,
@@ -99,9 +108,10 @@ def run(cfg: DictConfig) -> dict:
         stage.lock(work)  # one run at a time trains into a work dir
         encoder = InstructionEncoder()
         t0 = time.perf_counter()
-        model, model_cfg, meta, history = fit(cfg, contract, episodes + (dreamed or []), work, device, encoder,
+        model, model_cfg, meta, history = fit(cfg, contract, episodes + (dreamed or []) + pairs, work, device, encoder,
                                               {"held_out": [episode_key(p) for p in held],
-                                               "imagined_episodes": len(dreamed or [])}, worldsim=worldsim)
+                                               "imagined_episodes": len(dreamed or []), "paired_episodes": len(pairs)},
+                                              worldsim=worldsim)
         stage.record.tags["reward"] = model.reward_kind
         if history:
             stage.add_output(plot_history(history, work / "losses.png", f"train_reflector {contract.name}"), kind="plot")
@@ -122,9 +132,35 @@ def run(cfg: DictConfig) -> dict:
         for name in ("reflector_eval.json", "reflector_eval.md", "reflector_curves.png"):
             stage.add_output(work / name, kind="report" if name.endswith(("json", "md")) else "plot")
         stage.metrics.update({"episodes": len(episodes), "held_out": len(held_eps), "steps": cfg.train.steps,
+                              "paired_episodes": len(pairs),
                               "training": describe_training(cfg), "train_wall_s": round(train_s, 1),
                               "eval_wall_s": round(time.perf_counter() - t1, 1), "device": str(device),
                               "ranks": meta.get("ranks", 1),
                               **headline(report)})
         log.info("reflector saved to %s; metrics %s", final, json.dumps(stage.metrics))
     return stage.metrics
+
+
+def paired_training(cfg, stage, contract, episodes: list, held: list[Path]) -> tuple[list, list[str]]:
+    """`train.pairs_from`: both sides of each stored pair, labelled by the real outcome
+    (`imagination.pairs`), and the pair folders' names (part of the work dir's). Refused before
+    any training when a pair starts where an evaluation judges (its held-out episodes, init states)."""
+    instructions = {ep.meta.task_id: ep.meta.instruction for ep in episodes}
+    forbidden = {episode_key(p) for p in held}
+    pairs, names = [], []
+    for ref in cfg.train.pairs_from:
+        folder = Path(str(ref))
+        if not folder.is_dir():  # a record id: its pairs.json sits in the work dir beside the stored frames
+            record = stage.manifest.get(str(ref))
+            if record.stage != "evaluate_imagination":
+                raise ConfigError(f"train.pairs_from: {ref} is a {record.stage} record, not evaluate_imagination's")
+            folder = next(p for p in stage.use(record, kind="report") if p.name == "pairs.json").parent
+        try:
+            got = checked_episodes(folder, instructions, forbidden)
+        except (ValueError, FileNotFoundError) as e:
+            raise ConfigError(f"train.pairs_from: {e}") from None
+        log.info("%s: %d paired rollouts (%d real successes), both sides", folder, len(got) // 2,
+                 sum(ep.success.any() for ep in got) // 2)
+        pairs += got
+        names.append(folder.name)
+    return pairs, names

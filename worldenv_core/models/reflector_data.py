@@ -49,15 +49,19 @@ class PrefixSampler:
                  hard_window: int = 16, label_delay: int = 0):
         self.frames = [ep.video(camera) for ep in episodes]
         self.instructions = [ep.meta.instruction for ep in episodes]
-        self.stride, self.max_frames = int(stride), int(max_frames)
-        self.labels = [settled_labels(ep.success, label_delay) for ep in episodes]
+        self.max_frames = int(max_frames)
+        # `stride`, `label_delay` and `hard_window` are in simulator steps; an episode recorded only at
+        # its checks (a paired rollout: `steps_per_frame` = the chunk) counts them in its own frames
+        per = [int(getattr(ep, "steps_per_frame", 1)) for ep in episodes]
+        self.strides = [max(1, int(stride) // k) for k in per]
+        self.labels = [settled_labels(ep.success, -(-label_delay // k)) for ep, k in zip(episodes, per)]
         pos, neg, hard = [], [], []
         for i, y in enumerate(self.labels):
             for t in range(len(y)):
                 (pos if y[t] else neg).append((i, t))
             if y.any():
                 ts = int(np.argmax(y))
-                hard += [(i, t) for t in range(max(0, ts - hard_window), ts)]
+                hard += [(i, t) for t in range(max(0, ts - -(-hard_window // per[i])), ts)]
         if not pos or not neg:
             raise ValueError(f"the reflector needs successful and unsuccessful frames; got {len(pos)} positive "
                              f"and {len(neg)} negative frames from {len(episodes)} episodes")
@@ -73,15 +77,16 @@ class PrefixSampler:
     def mine(self, scores_fn, threshold: float) -> np.ndarray:
         """Negative prefix ends (at the chunk boundaries a rollout is scored at) that
         `scores_fn(episode index, frames, steps) -> R per step` puts above `threshold`, each
-        with the `stride` - 1 frames before it (the prefixes ending there look the same)."""
+        with the stride - 1 frames before it (the prefixes ending there look the same)."""
         out = []
         for i, frames in enumerate(self.frames):
-            steps = np.arange(0, len(frames), self.stride)
+            stride = self.strides[i]
+            steps = np.arange(0, len(frames), stride)
             steps = steps[~self.labels[i][steps]]
             if not len(steps):
                 continue
             high = steps[np.asarray(scores_fn(i, frames, steps.tolist())) > threshold]
-            out += [(i, t) for s in high for t in range(max(0, s - self.stride + 1), s + 1) if not self.labels[i][t]]
+            out += [(i, t) for s in high for t in range(max(0, s - stride + 1), s + 1) if not self.labels[i][t]]
         return np.array(out, dtype=np.int64).reshape(-1, 2)
 
     def counts(self) -> dict:
@@ -100,7 +105,7 @@ class PrefixSampler:
         return {**self.gather(items), "label": labels}
 
     def gather(self, items) -> dict:
-        seqs = [prefix_frames(int(t), self.stride, self.max_frames) for _, t in items]
+        seqs = [prefix_frames(int(t), self.strides[int(i)], self.max_frames) for i, t in items]
         f = max(len(s) for s in seqs)
         first = self.frames[0]
         frames = torch.zeros(len(items), f, *first.shape[1:], dtype=first.dtype)

@@ -111,3 +111,40 @@ def test_mid_episode_frames_lie_before_the_first_success():
     success[21:] = True
     assert mid_episode_frames(success, 30, 2) == [7, 14]
     assert mid_episode_frames(np.zeros(31, bool), 30, 1) == [15]
+
+
+def test_pairs_on_training_episodes_train_a_reflector_and_count_as_its_training_data(paired):
+    """contexts.source=training: the same pairs from a training episode's frames, tagged, kept out of
+    the fidelity table, counted as training data; train_reflector trains on both of their sides
+    (train.pairs_from), and refuses pairs that start where evaluations judge."""
+    from stages.train_reflector.run import run as train_reflector
+    from tests.stages.conftest import REFLECTOR
+
+    exp, summary = paired
+    m = Manifest(exp)
+    held_run = m.latest("evaluate_imagination", task="tiny")
+    training = ["contexts.source=training", "contexts.init_states=0", "noise_scales=[1.0]", "closed_loop_rollouts=0"]
+    with pytest.raises(ConfigError, match="contexts.source=training pairs from mid-episode frames"):
+        evaluate_imagination(stage_cfg("evaluate_imagination", exp, *PAIRED, "contexts.source=training"))
+    made = evaluate_imagination(stage_cfg("evaluate_imagination", exp, *PAIRED, *training))
+    rec = Manifest(exp).latest("evaluate_imagination", task="tiny")
+    assert rec.tags["contexts"] == "training" and made["headline"]["rollouts"] == 2
+    rows = json.loads(next(Path(exp, a.path) for a in rec.files("report") if a.path.endswith("pairs.json")).read_text())
+    starts = {r["start"].rsplit("@", 1)[0] for r in rows["sft@1"]["rows"]}
+    held = {r["start"].rsplit("@", 1)[0] for r in json.loads(next(
+        Path(exp, a.path) for a in held_run.files("report") if a.path.endswith("pairs.json")).read_text())["sft@1"]["rows"]
+        if r["context_kind"] == "episode"}
+    assert len(starts) == 1 and not starts & held  # the training demo, not the held-out one
+    report = (Path(exp) / "report" / "report.md").read_text()
+    assert f"`{rec.id}`" not in report.split("## Verdict fidelity")[1].split("\n## ")[0]
+    accounting = report.split("## Real-simulator episodes")[1].split("\n## ")[0]
+    assert "training data: real outcomes labelling imagined rollouts for a reflector | 2 |" in accounting
+
+    metrics = train_reflector(stage_cfg("train_reflector", exp, *REFLECTOR, f"train.pairs_from=[{rec.id}]"))
+    assert metrics["paired_episodes"] == 4 and "+ paired rollouts (real labels)" in metrics["training"]
+    assert rec.id in Manifest(exp).latest("train_reflector", task="tiny").inputs
+    with pytest.raises(ConfigError, match="starts at a benchmark init state"):
+        train_reflector(stage_cfg("train_reflector", exp, *REFLECTOR, f"train.pairs_from=[{held_run.id}]"))
+    with pytest.raises(ConfigError, match="train.pairs_from with eta_folds"):
+        train_reflector(stage_cfg("train_reflector", exp, *[o for o in REFLECTOR if not o.startswith("eta_folds")],
+                                  f"train.pairs_from=[{rec.id}]", "eta_folds=2"))
