@@ -139,7 +139,16 @@ def summarise(results: dict, names: list[str], eta: float, horizons: list[int], 
             "real_episodes": sum(r["real_episodes"] for r in results.values() if r),
             "imagined_rollouts": sum(r["imagined_rollouts"] for r in results.values() if r),
             "per_policy": per_policy, "per_task": tasks, "frames": frames,
-            "judges": {j.name: judged([as_judged_by(r, j.name) for r in rows], j.eta) for j in judges if rows}}
+            "judges": {j.name: {**judged([as_judged_by(r, j.name) for r in rows], j.eta),
+                                "evaluator_paired": judged_evaluator(results, names, j)} for j in judges if rows}}
+
+
+def judged_evaluator(results: dict, names: list[str], j: Judge) -> dict:
+    """The policy evaluator on paired replays as further reflector `j` judges them: each paired
+    policy's imagined success against the real success of the same actions (by j's stops)."""
+    per_policy = {n: verdict_metrics([as_judged_by(r, j.name) for r in results[n]["rows"]], j.eta)
+                  for n in names if results[n]["rows"] and all(j.name in r["more_reflectors"] for r in results[n]["rows"])}
+    return evaluator_metrics(per_policy, "real_success")
 
 
 def write_outputs(stage, summary: dict, results: dict, work: Path) -> None:
@@ -209,6 +218,10 @@ def _sampler(tags: dict) -> str:
     return f"{steps or 'default'}, {'default' if noise is None else f'{noise:g}'}"
 
 
+def _evaluator(ev: dict) -> str:
+    return f"{_num(ev['spearman'], 2)} / {_pct(ev['mae'])} ({ev['policies']})" if ev.get("policies", 0) >= 2 else "-"
+
+
 def _real_frames(m: dict) -> str:
     """The reflector on the real frames: asked at the imagined verdict's check / stopping on its own."""
     return f"{_num(m['real_frames_f1'])} / {_num(m.get('real_stop_f1'))}"
@@ -263,13 +276,16 @@ def section(ctx: ReportContext, limit: int = 8) -> list[str]:
              for n, m in s["per_policy"].items()])]
         if s.get("judges"):
             first = {"eta": s["eta"], **s["headline"], "replay_eta": s.get("replay_eta", {})}
+            first["evaluator_paired"] = s.get("evaluator_paired", {})
             lines += ["", "Reflectors judging the same pairs (the headline's imagined rollouts and their real replays; "
-                      "the first terminates the imagined rollouts, each judges at its own eta):", "", *markdown_table(
+                      "the first terminates the imagined rollouts, each judges at its own eta; evaluator: over the "
+                      "paired policies):", "", *markdown_table(
                 ["reflector", "eta", "AUROC", "F1", "hack rate", "imagined / real success", "max task gap",
-                 "real-frame F1 at the verdict / own stop", "eta chosen on replays: F1 / hack rate (etas)"],
+                 "real-frame F1 at the verdict / own stop", "eta chosen on replays: F1 / hack rate (etas)",
+                 "evaluator Spearman / MAE (policies)"],
                 [[name, _num(m["eta"], 2), _num(m["auroc"]), _num(m["f1"]), _pct(m["hack_rate"]),
                   f"{_pct(m['imagined_success'])} / {_pct(m['real_success'])}", _pct(m["max_task_gap"]),
-                  _real_frames(m), _replay_eta(m.get("replay_eta", {}))]
+                  _real_frames(m), _replay_eta(m.get("replay_eta", {})), _evaluator(m.get("evaluator_paired") or {})]
                  for name, m in [(newest.tags.get("reflector"), first), *s["judges"].items()]])]
         lines += ["", "By context kind and task (headline policy):", "", *markdown_table(
             ["contexts", "pairs", "imagined success", "real success", "AUROC", "F1"],

@@ -24,8 +24,8 @@ from stages.evaluate_imagination.judges import Judge, judge_pairs
 from stages.report import write_report
 from worldenv_core.data.selection import episode_key
 from worldenv_core.imagination.env import build_imagined_env
-from worldenv_core.manifest import StageRun, config_hash
-from worldenv_core.models.checkpoint import load_checkpoint, read_config
+from worldenv_core.manifest import StageRun, config_hash, sha256_file
+from worldenv_core.models.checkpoint import WEIGHTS, load_checkpoint, read_config
 from worldenv_core.models.text import InstructionEncoder
 from worldenv_core.rl.termination import check_eta, reflector_eta
 from worldenv_core.stage import (POLICY_SOURCES, ConfigError, positive_int, require_task, resolve_checkpoint, resolved,
@@ -105,13 +105,15 @@ def run(cfg: DictConfig) -> dict:
         # Each policy's pairs are kept as they finish: a killed run re-run skips the policies done.
         shown = ("policies", "noise_scales", "paired_policies", "progress", "workers", "launcher", "ray_address", "gifs",
                  "more_reflectors", "store_frames")  # judges score stored pairs: naming more reuses them
-        work = work_dir(cfg.experiment_dir, "evaluate_imagination", {k: v for k, v in config.items() if k not in shown},
-                        stage.work_inputs())
+        key = {k: v for k, v in config.items() if k not in shown}
+        if key["contexts"].get("source") == "held_out":  # the default names no work dir: those made before it stay
+            key["contexts"] = {k: v for k, v in key["contexts"].items() if k != "source"}
+        work = work_dir(cfg.experiment_dir, "evaluate_imagination", key, stage.work_inputs())
         stage.lock(work)
         judges = further_reflectors(cfg, stage, contract, camera, contexts)  # after the work dir: not part of its name
         results, instructions = {}, {c.context.task_id: c.context.instruction for c in contexts}
         for i, v in enumerate(variants):
-            path = work / f"{config_hash({'policy': v.path, 'noise': v.noise_scale, 'paired': v.paired})}.json"
+            path = work / f"{variant_key(v)}.json"
             frames = work / "frames" / path.stem if cfg.store_frames else None
             if path.exists():
                 results[v.name] = json.loads(path.read_text())
@@ -121,7 +123,7 @@ def run(cfg: DictConfig) -> dict:
                 results[v.name] = pair_variant(cfg, contract, v, env, contexts, encode, reflector, eta, device,
                                                gifs=cfg.gifs if i == 0 else 0, out=work, frames_dir=frames)
                 _write_json(path, results[v.name])
-            if i == 0 and judges and judge_pairs(
+            if v.paired and judges and judge_pairs(
                     results[v.name]["rows"], frames, judges,
                     lambda j: load_checkpoint(j.path, "reflector", contract, device=str(device))[0],
                     lambda row: instructions[row["task_id"]], encode):
@@ -151,6 +153,12 @@ def further_reflectors(cfg, stage, contract, camera: str, contexts) -> list[Judg
                               "train it with the same holdout_every as the reflector")
         judges.append(Judge(_name(path), path, reflector_eta(path, None)))
     return judges
+
+
+def variant_key(v: Variant) -> str:
+    """A policy variant's pairs file in the work dir, named by the policy's weights (by content: the
+    same checkpoint from another clone, worktree or folder finds its pairs), noise and pairing."""
+    return config_hash({"policy": sha256_file(Path(v.path) / WEIGHTS), "noise": v.noise_scale, "paired": v.paired})
 
 
 def _name(checkpoint: str) -> str:
