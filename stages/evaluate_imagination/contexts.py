@@ -17,7 +17,7 @@ from worldenv_core.contract import TaskContract
 from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.data.selection import MissingEpisodesError, collected_episodes, episode_key
 from worldenv_core.envs.recording import cached_env
-from worldenv_core.envs.replay import RealStart, restore
+from worldenv_core.envs.replay import RealStart, ReplayError, restore
 from worldenv_core.errors import ConfigError
 from worldenv_core.imagination.env import Context
 from worldenv_core.models.checkpoint import read_config
@@ -46,6 +46,18 @@ def start_frame(job: StartFrameJob) -> dict:
     frame = restore(env, job.start)
     return {"start": job.start, "image": env.render([c.cameras[0]])[c.cameras[0]], "proprio": frame.proprio,
             "instruction": env.instruction}
+
+
+def reproduces(job: StartFrameJob) -> dict:
+    """Whether replaying a recorded episode's prefix reaches its recorded state at the context frame
+    (the real side of every pair starts there); the error if not."""
+    c = job.contract
+    env = cached_env(c.suite, job.start.task_id, c.cameras, c.image_size, render=False)
+    try:
+        restore(env, job.start)
+    except ReplayError as e:
+        return {"start": job.start, "error": str(e)}
+    return {"start": job.start, "error": None}
 
 
 def mid_episode_frames(success: np.ndarray, length: int, n: int) -> list[int]:
@@ -79,9 +91,11 @@ def context_episodes(manifest, stage, contract: TaskContract, scale: str, worlds
     return [p for p in paths if episode_key(p) in held[worldsim] & held[reflector]]
 
 
-def build_contexts(cfg, contract: TaskContract, held: list[Path]) -> list[PairedContext]:
+def build_contexts(cfg, contract: TaskContract, held: list[Path]) -> tuple[list[PairedContext], list[str]]:
     """init_states benchmark init states per task, then episode_frames frames of the first
-    episodes_per_task of `held` (the context episodes) of each task."""
+    episodes_per_task of `held` (the context episodes) of each task; a mid-episode frame whose
+    prefix does not replay to its recorded state is dropped here, before any imagination (its
+    pairs could not be judged). -> (contexts, the dropped ones' errors)."""
     c, camera = cfg.contexts, contract.cameras[0]
     tasks = contract.resolved_task_ids()
     jobs = [StartFrameJob(contract, RealStart(task_id=t, init_state=i)) for t in tasks for i in range(c.init_states)]
@@ -93,6 +107,7 @@ def build_contexts(cfg, contract: TaskContract, held: list[Path]) -> list[Paired
                       frame=torch.from_numpy(r["image"]).permute(2, 0, 1).contiguous(), proprio=torch.from_numpy(r["proprio"]))
         out.append(PairedContext(r["start"], ctx, "init"))
     per_task: dict[int, int] = {}
+    episodes = []
     for path in held:
         ep = read_episode(path, cameras=[camera], load_sim_state=False)
         t = ep.meta.task_id
@@ -100,6 +115,12 @@ def build_contexts(cfg, contract: TaskContract, held: list[Path]) -> list[Paired
             continue
         per_task[t] = per_task.get(t, 0) + 1
         for f in mid_episode_frames(ep.success, ep.length, c.episode_frames):
-            out.append(PairedContext(RealStart(task_id=t, seed=ep.meta.seed, episode=str(path), frame=f),
-                                     Context.from_episode(ep, camera, f), "episode"))
-    return out
+            episodes.append(PairedContext(RealStart(task_id=t, seed=ep.meta.seed, episode=str(path), frame=f),
+                                          Context.from_episode(ep, camera, f), "episode"))
+    checks = run_jobs(reproduces, [StartFrameJob(contract, x.start) for x in episodes], workers=cfg.workers,
+                      launcher=cfg.launcher, desc="context replays", ray_address=cfg.ray_address, progress=cfg.progress,
+                      unit="ctx")
+    errors = {r["start"].key: r["error"] for r in checks if r["error"]}
+    for key, error in errors.items():
+        log.warning("context dropped: %s", error)
+    return out + [x for x in episodes if x.start.key not in errors], sorted(errors.values())

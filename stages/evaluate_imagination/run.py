@@ -98,7 +98,9 @@ def run(cfg: DictConfig) -> dict:
         # init-state contexts alone need no recorded episode: checkpoint folders are enough
         held = (context_episodes(manifest, stage, contract, cfg.scale.name, worldsim, reflector, cfg.contexts.source)
                 if cfg.contexts.episodes_per_task and cfg.contexts.episode_frames else [])
-        contexts = build_contexts(cfg, contract, held)
+        contexts, dropped = build_contexts(cfg, contract, held)
+        if not contexts:
+            raise ConfigError(f"no context left: every mid-episode frame failed to replay ({dropped[0]})")
         log.info("paired replay of %d policies x %d contexts (%d init states, %d mid-episode) x %d rollouts; eta %.2f; "
                  "world model %s, reflector %s", len(variants), len(contexts), sum(c.kind == "init" for c in contexts),
                  sum(c.kind == "episode" for c in contexts), cfg.rollouts, eta, worldsim, reflector)
@@ -129,6 +131,9 @@ def run(cfg: DictConfig) -> dict:
                     lambda row: instructions[row["task_id"]], encode):
                 _write_json(path, results[v.name])  # the judges' scores kept: named again, they cost nothing
         summary = summarise(results, [v.name for v in variants], eta, list(cfg.horizons), tuple(judges))
+        # the prefix checks reset the real simulator too; a dropped context is named, not hidden
+        summary["real_episodes"] += sum(c.kind == "episode" for c in contexts) + len(dropped)
+        summary["contexts_dropped"] = dropped
         write_outputs(stage, summary, results, work)
         stage.metrics.update({k: v for k, v in summary.items() if k not in ("per_policy", "per_task", "frames", "judges")})
         log.info("verdict fidelity of %s: %s", variants[0].name, json.dumps(summary["headline"]))

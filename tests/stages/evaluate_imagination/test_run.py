@@ -32,7 +32,8 @@ def test_every_imagined_rollout_is_paired_with_its_real_replay(paired):
     # first (paired_policies=1) replayed in the real simulator, both run closed loop once per context
     assert list(summary["per_policy"]) == ["sft@1", "sft@3"] and summary["headline_policy"] == "sft@1"
     assert summary["headline"]["rollouts"] == 4 and summary["imagined_rollouts"] == 8
-    assert summary["real_episodes"] == 4 + 2 * 2 == rec.metrics["real_episodes"]  # replays + closed loop
+    # replays + closed loop + the mid-episode context's prefix checked once before any imagination
+    assert summary["real_episodes"] == 4 + 2 * 2 + 1 == rec.metrics["real_episodes"] and summary["contexts_dropped"] == []
     assert summary["per_policy"]["sft@3"]["rollouts"] == 0 and 0 <= summary["per_policy"]["sft@3"]["imagined_success"] <= 1
     pairs = json.loads(next(Path(exp, a.path) for a in rec.files("report") if a.path.endswith("pairs.json")).read_text())
     rows = pairs["sft@1"]["rows"]
@@ -78,7 +79,7 @@ def test_the_report_shows_the_verdict_table_and_the_real_episode_accounting(pair
     assert "sft@3" in section and "fidelity_imagined_vs_real.png" in section and "fidelity_verdict_vs_eta.png" in section and "![pair](videos/fidelity_" in section
     accounting = report.split("## Real-simulator episodes")[1].split("\n## ")[0]
     assert "| evaluate_imagination |" in accounting and "| collect | scale=tiny, source=expert | training data: expert |" in accounting
-    assert "Total: training data: " in accounting and "evaluation: 8" in accounting
+    assert "Total: training data: " in accounting and "evaluation: 9" in accounting
 
 
 def test_a_rerun_reuses_the_pairs_and_bad_settings_fail_first(paired):
@@ -138,7 +139,7 @@ def test_pairs_on_training_episodes_train_a_reflector_and_count_as_its_training_
     report = (Path(exp) / "report" / "report.md").read_text()
     assert f"`{rec.id}`" not in report.split("## Verdict fidelity")[1].split("\n## ")[0]
     accounting = report.split("## Real-simulator episodes")[1].split("\n## ")[0]
-    assert "training data: real outcomes labelling imagined rollouts for a reflector | 2 |" in accounting
+    assert "training data: real outcomes labelling imagined rollouts for a reflector | 3 |" in accounting
 
     metrics = train_reflector(stage_cfg("train_reflector", exp, *REFLECTOR, f"train.pairs_from=[{rec.id}]"))
     assert metrics["paired_episodes"] == 4 and "+ paired rollouts (real labels)" in metrics["training"]
