@@ -13,6 +13,7 @@ import torch
 
 from stages.evaluate_imagination.contexts import PairedContext
 from stages.evaluate_imagination.judges import Judge
+from stages.evaluate_imagination.levers import lever_rows, plot_levers
 from worldenv_core.contract import TaskContract
 from worldenv_core.envs.replay import PairedReplayJob, replay_context
 from worldenv_core.imagination.pairs import store_pair_frames
@@ -240,12 +241,16 @@ def section(ctx: ReportContext, limit: int = 8) -> list[str]:
     runs = [r for r in ctx.find("evaluate_imagination") if r.tags.get("contexts") != "training"][-limit:]
     if not runs:
         return []
-    rows = []
+    rows, judgements = [], []
     for r in runs:
         s = ctx.report_json(r, "fidelity.json")
         if not s:
             continue
         h, ev = s["headline"], s["evaluator"]
+        c = r.config.get("contexts", {})
+        pairing = f"{c.get('init_states', 0)} init, {c.get('episodes_per_task', 0)}x{c.get('episode_frames', 0)} mid; {_sampler(r.tags)}"
+        judgements += [(r.tags.get("worldsim"), f"{name}\n{pairing}", m)
+                       for name, m in [(r.tags.get("reflector"), h), *s.get("judges", {}).items()]]
         rows.append([r.tags.get("worldsim"), r.tags.get("reflector"), _num(s["eta"], 2), _sampler(r.tags),
                      s["headline_policy"], h["rollouts"], _num(h["auroc"]) + _mark("auroc", h["auroc"]),
                      _num(h["f1"]) + _mark("f1", h["f1"]), _pct(h["hack_rate"]) + _mark("hack_rate", h["hack_rate"]),
@@ -265,6 +270,10 @@ def section(ctx: ReportContext, limit: int = 8) -> list[str]:
              *markdown_table(["world model", "reflector", "eta", "sampler (steps, noise)", "policy", "pairs", "AUROC",
                               "F1", "hack rate", "imagined / real success", "max task gap", "timing error (median steps)",
                               "real-frame F1 at the verdict / own stop", "eta chosen on replays: F1 / hack rate (etas)", "evaluator Spearman / MAE (policies)", "real episodes"], rows)]
+    if judgements:
+        plot_levers(lever_rows(judgements), ctx.out / "fidelity_levers.png")
+        lines += ["", "Every world model and reflector the held-out pairs were judged with (a run's reflector and the "
+                  "further reflectors on its pairs), against the targets:", "", "![verdict by lever](fidelity_levers.png)"]
     newest = runs[-1]
     s = ctx.report_json(newest, "fidelity.json")
     if s:

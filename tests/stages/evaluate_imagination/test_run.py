@@ -77,6 +77,7 @@ def test_the_report_shows_the_verdict_table_and_the_real_episode_accounting(pair
     report = (Path(exp) / "report" / "report.md").read_text()
     section = report.split("## Verdict fidelity: imagined against real")[1].split("\n## ")[0]
     assert "sft@3" in section and "fidelity_imagined_vs_real.png" in section and "fidelity_verdict_vs_eta.png" in section and "![pair](videos/fidelity_" in section
+    assert "![verdict by lever](fidelity_levers.png)" in section and (Path(exp) / "report" / "fidelity_levers.png").exists()
     accounting = report.split("## Real-simulator episodes")[1].split("\n## ")[0]
     assert "| evaluate_imagination |" in accounting and "| collect | scale=tiny, source=expert | training data: expert |" in accounting
     assert "Total: training data: " in accounting and "evaluation: 9" in accounting
