@@ -61,7 +61,7 @@ def reproduces(job: StartFrameJob) -> dict:
 
 
 def mid_episode_frames(success: np.ndarray, length: int, n: int) -> list[int]:
-    """n frames spread over the part of an episode before its first success (the task not yet
+    """n (>= 0) frames spread over the part of an episode before its first success (the task not yet
     done, so there is something left to judge), avoiding the first and the success frame."""
     hits = np.flatnonzero(success)
     end = int(hits[0]) if len(hits) else length
@@ -93,7 +93,8 @@ def context_episodes(manifest, stage, contract: TaskContract, scale: str, worlds
 
 def build_contexts(cfg, contract: TaskContract, held: list[Path]) -> tuple[list[PairedContext], list[str]]:
     """init_states benchmark init states per task, then episode_frames frames of the first
-    episodes_per_task of `held` (the context episodes) of each task; a mid-episode frame whose
+    episodes_per_task of `held` (the context episodes) of each task (and its first frame with
+    `contexts.episode_start`); a mid-episode frame whose
     prefix does not replay to its recorded state is dropped here, before any imagination (its
     pairs could not be judged). -> (contexts, the dropped ones' errors)."""
     c, camera = cfg.contexts, contract.cameras[0]
@@ -114,7 +115,8 @@ def build_contexts(cfg, contract: TaskContract, held: list[Path]) -> tuple[list[
         if t not in tasks or per_task.get(t, 0) >= c.episodes_per_task:
             continue
         per_task[t] = per_task.get(t, 0) + 1
-        for f in mid_episode_frames(ep.success, ep.length, c.episode_frames):
+        starts = [0] if c.get("episode_start", False) else []  # where LOOP starts (its contexts are first frames)
+        for f in starts + mid_episode_frames(ep.success, ep.length, c.episode_frames):
             episodes.append(PairedContext(RealStart(task_id=t, seed=ep.meta.seed, episode=str(path), frame=f),
                                           Context.from_episode(ep, camera, f), "episode"))
     checks = run_jobs(reproduces, [StartFrameJob(contract, x.start) for x in episodes], workers=cfg.workers,

@@ -35,6 +35,14 @@ from worldenv_core.training import pick_device
 log = logging.getLogger("worldenv.evaluate_imagination")
 
 
+LATER_CONTEXT_KEYS = {"source": "held_out", "episode_start": False}
+
+
+def episode_frames(cfg) -> int:
+    """Contexts per context episode: its mid-episode frames, plus its first with episode_start."""
+    return cfg.contexts.episode_frames + bool(cfg.contexts.get("episode_start", False))
+
+
 def validate(cfg: DictConfig) -> None:
     require_task(cfg)
     for key in ("rollouts", "horizon"):
@@ -51,7 +59,7 @@ def validate(cfg: DictConfig) -> None:
                           "and contexts.episodes_per_task > 0")
     if cfg.contexts.init_states > 50:
         raise ConfigError(f"contexts.init_states is at most 50 (the benchmark has 50 per task), got {cfg.contexts.init_states}")
-    if not cfg.contexts.init_states and not (cfg.contexts.episodes_per_task and cfg.contexts.episode_frames):
+    if not cfg.contexts.init_states and not (cfg.contexts.episodes_per_task and episode_frames(cfg)):
         raise ConfigError("no contexts: set contexts.init_states or contexts.episodes_per_task and contexts.episode_frames")
     if not cfg.policies or not cfg.noise_scales:
         raise ConfigError("policies and noise_scales must each name at least one")
@@ -97,7 +105,7 @@ def run(cfg: DictConfig) -> dict:
             raise ConfigError(f"the world model imagines {camera!r} but task {contract.name} renders {contract.cameras[0]!r} first")
         # init-state contexts alone need no recorded episode: checkpoint folders are enough
         held = (context_episodes(manifest, stage, contract, cfg.scale.name, worldsim, reflector, cfg.contexts.source)
-                if cfg.contexts.episodes_per_task and cfg.contexts.episode_frames else [])
+                if cfg.contexts.episodes_per_task and episode_frames(cfg) else [])
         contexts, dropped = build_contexts(cfg, contract, held)
         if not contexts:
             raise ConfigError(f"no context left: every mid-episode frame failed to replay ({dropped[0]})")
@@ -108,8 +116,8 @@ def run(cfg: DictConfig) -> dict:
         shown = ("policies", "noise_scales", "paired_policies", "progress", "workers", "launcher", "ray_address", "gifs",
                  "more_reflectors", "store_frames")  # judges score stored pairs: naming more reuses them
         key = {k: v for k, v in config.items() if k not in shown}
-        if key["contexts"].get("source") == "held_out":  # the default names no work dir: those made before it stay
-            key["contexts"] = {k: v for k, v in key["contexts"].items() if k != "source"}
+        # settings added later name no work dir at their defaults: the pairs made before them stay found
+        key["contexts"] = {k: v for k, v in key["contexts"].items() if LATER_CONTEXT_KEYS.get(k, ...) != v}
         work = work_dir(cfg.experiment_dir, "evaluate_imagination", key, stage.work_inputs())
         stage.lock(work)
         judges = further_reflectors(cfg, stage, contract, camera, contexts)  # after the work dir: not part of its name
