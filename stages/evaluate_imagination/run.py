@@ -109,7 +109,7 @@ def run(cfg: DictConfig) -> dict:
         contexts, dropped = build_contexts(cfg, contract, held)
         if not contexts:
             raise ConfigError(f"no context left: every mid-episode frame failed to replay ({dropped[0]})")
-        log.info("paired replay of %d policies x %d contexts (%d init states, %d mid-episode) x %d rollouts; eta %.2f; "
+        log.info("paired replay of %d policies x %d contexts (%d init states, %d in recorded episodes) x %d rollouts; eta %.2f; "
                  "world model %s, reflector %s", len(variants), len(contexts), sum(c.kind == "init" for c in contexts),
                  sum(c.kind == "episode" for c in contexts), cfg.rollouts, eta, worldsim, reflector)
         # Each policy's pairs are kept as they finish: a killed run re-run skips the policies done.

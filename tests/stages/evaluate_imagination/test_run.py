@@ -125,25 +125,27 @@ def test_pairs_on_training_episodes_train_a_reflector_and_count_as_its_training_
     exp, summary = paired
     m = Manifest(exp)
     held_run = m.latest("evaluate_imagination", task="tiny")
-    training = ["contexts.source=training", "contexts.init_states=0", "noise_scales=[1.0]", "closed_loop_rollouts=0"]
+    training = ["contexts.source=training", "contexts.init_states=0", "noise_scales=[1.0]", "closed_loop_rollouts=0",
+                "contexts.episode_start=true"]  # its first frame (where LOOP starts) and one mid-episode frame
     with pytest.raises(ConfigError, match="contexts.source=training pairs from mid-episode frames"):
         evaluate_imagination(stage_cfg("evaluate_imagination", exp, *PAIRED, "contexts.source=training"))
     made = evaluate_imagination(stage_cfg("evaluate_imagination", exp, *PAIRED, *training))
     rec = Manifest(exp).latest("evaluate_imagination", task="tiny")
-    assert rec.tags["contexts"] == "training" and made["headline"]["rollouts"] == 2
+    assert rec.tags["contexts"] == "training" and made["headline"]["rollouts"] == 4
     rows = json.loads(next(Path(exp, a.path) for a in rec.files("report") if a.path.endswith("pairs.json")).read_text())
     starts = {r["start"].rsplit("@", 1)[0] for r in rows["sft@1"]["rows"]}
     held = {r["start"].rsplit("@", 1)[0] for r in json.loads(next(
         Path(exp, a.path) for a in held_run.files("report") if a.path.endswith("pairs.json")).read_text())["sft@1"]["rows"]
         if r["context_kind"] == "episode"}
     assert len(starts) == 1 and not starts & held  # the training demo, not the held-out one
+    assert sorted(r["start"].rsplit("@", 1)[1] for r in rows["sft@1"]["rows"])[:2] == ["0", "0"]
     report = (Path(exp) / "report" / "report.md").read_text()
     assert f"`{rec.id}`" not in report.split("## Verdict fidelity")[1].split("\n## ")[0]
     accounting = report.split("## Real-simulator episodes")[1].split("\n## ")[0]
-    assert "training data: real outcomes labelling imagined rollouts for a reflector | 3 |" in accounting
+    assert "training data: real outcomes labelling imagined rollouts for a reflector | 6 |" in accounting
 
     metrics = train_reflector(stage_cfg("train_reflector", exp, *REFLECTOR, f"train.pairs_from=[{rec.id}]"))
-    assert metrics["paired_episodes"] == 4 and "+ paired rollouts (real labels)" in metrics["training"]
+    assert metrics["paired_episodes"] == 8 and "+ paired rollouts (real labels)" in metrics["training"]
     assert rec.id in Manifest(exp).latest("train_reflector", task="tiny").inputs
     with pytest.raises(ConfigError, match="starts at a benchmark init state"):
         train_reflector(stage_cfg("train_reflector", exp, *REFLECTOR, f"train.pairs_from=[{held_run.id}]"))
