@@ -178,6 +178,8 @@ def plot_routes(ctx: ReportContext, runs: list[StageRecord], path: Path) -> Path
         curve = sorted((int(k), v) for k, v in r.metrics["real_success"].items())
         collected, per_it = real_episodes_used(ctx, r)
         label = f"{r.tags.get('env', 'imagined')} eta {r.tags.get('eta')} N {r.tags.get('n_rollouts')}"
+        if r.tags.get("env", "imagined") == "imagined" and r.config.get("reflector_from"):  # routes differ by their judge
+            label += f", {Path(str(r.config['reflector_from'])).name}"
         style = "-o" if r.tags.get("env") == "real" else "-s"
         axes[0].plot([i for i, _ in curve], [100 * v for _, v in curve], style, label=label, ms=3)
         axes[1].plot([collected + per_it * i for i, _ in curve], [100 * v for _, v in curve], style, label=label, ms=3)
