@@ -71,13 +71,13 @@ def real_episodes_section(ctx: ReportContext) -> list[str]:
         if r.stage not in PURPOSE:
             continue
         n = r.metrics.get("real_episodes")
-        labels = r.stage == "evaluate_imagination" and r.tags.get("contexts") == "training"
-        purpose = ("training data: real outcomes labelling imagined rollouts for a reflector" if labels
+        labelling = r.stage == "evaluate_imagination" and r.tags.get("contexts") == "training"
+        purpose = ("training data: real outcomes labelling imagined rollouts for a reflector" if labelling
                    else PURPOSE[r.stage] + (f": {r.tags['source']}" if r.stage == "collect" else ""))
         rows.append([r.stage, ", ".join(f"{k}={v}" for k, v in r.tags.items() if k not in ("task", "worldsim", "reflector")),
                      purpose, "not recorded" if n is None else n])
         if n is not None:
-            key = "training data" if r.stage == "collect" or labels else "evaluation"
+            key = "training data" if r.stage == "collect" or labelling else "evaluation"
             totals[key] = totals.get(key, 0) + n
         if r.metrics.get("train_real_episodes"):  # post_train_loop env=real: the reference trains on them
             rows.append([r.stage, rows[-1][1], "training rollouts (the real-simulator reference)",

@@ -115,7 +115,7 @@ def build_contexts(cfg, contract: TaskContract, held: list[Path]) -> tuple[list[
         if t not in tasks or per_task.get(t, 0) >= c.episodes_per_task:
             continue
         per_task[t] = per_task.get(t, 0) + 1
-        starts = [0] if c.get("episode_start", False) else []  # where LOOP starts (its contexts are first frames)
+        starts = [0] if c.episode_start else []  # where LOOP starts (its contexts are first frames)
         for f in starts + mid_episode_frames(ep.success, ep.length, c.episode_frames):
             episodes.append(PairedContext(RealStart(task_id=t, seed=ep.meta.seed, episode=str(path), frame=f),
                                           Context.from_episode(ep, camera, f), "episode"))

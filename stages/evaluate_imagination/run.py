@@ -40,7 +40,7 @@ LATER_CONTEXT_KEYS = {"source": "held_out", "episode_start": False}
 
 def episode_frames(cfg) -> int:
     """Contexts per context episode: its mid-episode frames, plus its first with episode_start."""
-    return cfg.contexts.episode_frames + bool(cfg.contexts.get("episode_start", False))
+    return cfg.contexts.episode_frames + bool(cfg.contexts.episode_start)
 
 
 def validate(cfg: DictConfig) -> None:

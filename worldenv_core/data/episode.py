@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
@@ -64,6 +65,7 @@ def _as(name: str, value, dtype) -> np.ndarray:
 
 @dataclass
 class Episode:
+    steps_per_frame: ClassVar[int] = 1  # a frame every simulator step (a paired rollout's: every chunk)
     meta: EpisodeMeta
     images: dict[str, np.ndarray]  # camera -> uint8 (T+1, H, W, 3), upright
     proprio: np.ndarray  # (T+1, 7) float32

@@ -44,10 +44,6 @@ class CheckedEpisode:
     meta: SimpleNamespace  # task_id, instruction, side, start: what the sampler and a reader need
     steps_per_frame: int
 
-    @property
-    def length(self) -> int:
-        return len(self.frames)
-
     def video(self, camera: str | None = None):
         import torch
 
@@ -87,13 +83,15 @@ def checked_episodes(folder: Path, instructions: dict[int, str], forbidden: set[
                              + start}, which evaluations judge on; make the pairs with contexts.source=training")
         if row.get("real_error"):
             continue
+        task = int(row["task_id"])
+        if task not in instructions:
+            raise ValueError(f"{folder}: pair {path.name} is of task {task}, which none of the training episodes is")
         chunk, first = int(row["chunk"]), row["real_first_success"]
         with np.load(path) as f:
             sides = {side: f[side] for side in SIDES}
         for side, frames in sides.items():
             checks = np.arange(len(frames)) * chunk
             success = checks >= first if first is not None else np.zeros(len(frames), dtype=bool)
-            meta = SimpleNamespace(task_id=int(row["task_id"]), instruction=instructions[int(row["task_id"])], side=side,
-                                   start=row["start"])
+            meta = SimpleNamespace(task_id=task, instruction=instructions[task], side=side, start=row["start"])
             out.append(CheckedEpisode(frames, success, meta, chunk))
     return out

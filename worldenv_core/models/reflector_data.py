@@ -52,7 +52,7 @@ class PrefixSampler:
         self.max_frames = int(max_frames)
         # `stride`, `label_delay` and `hard_window` are in simulator steps; an episode recorded only at
         # its checks (a paired rollout: `steps_per_frame` = the chunk) counts them in its own frames
-        per = [int(getattr(ep, "steps_per_frame", 1)) for ep in episodes]
+        per = [int(ep.steps_per_frame) for ep in episodes]
         self.strides = [max(1, int(stride) // k) for k in per]
         self.labels = [settled_labels(ep.success, -(-label_delay // k)) for ep, k in zip(episodes, per)]
         pos, neg, hard = [], [], []
