@@ -19,7 +19,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from stages.train_worldsim.evaluation import evaluate_fidelity, write_replays
-from stages.train_worldsim.training import ae_phase, flow_phase, rollout_phase
+from stages.train_worldsim.training import ae_phase, episode_chunks, flow_phase, rollout_phase
 from worldenv_core.contract import TaskContract
 from worldenv_core.data.selection import collected_episodes, episode_key, load_split
 from worldenv_core.kinematics.camera import PinholeCamera
@@ -107,7 +107,8 @@ def run(cfg: DictConfig) -> dict:
         phases = [] if base else [ae_phase(model, optimizers["ae"], frames_of, cfg, device),
                                   flow_phase(model, ema, optimizers["flow"], episodes, cameras, cfg, device)]
         if cfg.rollout.steps:
-            phases.append(rollout_phase(model, ema, optimizers["flow"], episodes, cameras, cfg, device))
+            chunks_of = lambda ahead: episode_chunks(model, episodes, device, fresh=False, chunks_ahead=ahead)  # noqa: E731
+            phases.append(rollout_phase(model, ema, optimizers["flow"], chunks_of, cameras, cfg, device))
         log.info("training on %d episodes (%d held out): %s on %s; work dir %s", len(episodes), len(held_eps),
                  " + ".join(f"{p.steps} {p.name}" for p in phases), device, work)
         trainer.fit(phases)

@@ -43,7 +43,7 @@ def flow_phase(model, ema, optimizer, episodes, cameras, cfg, device) -> Phase:
     """Phase 2: the latent flow model on chunks of once-encoded frames, with EMA weights. Entering it
     fresh sets the latent scales and starts the EMA from the trained autoencoder."""
     def draw(start: int):
-        chunks = _latent_chunks(model, episodes, device, fresh=start == 0)
+        chunks = episode_chunks(model, episodes, device, fresh=start == 0)
         if start == 0:
             ema.load_state_dict(model.state_dict())
         return batches(chunks, cfg.flow.batch_size, cfg.seed + 1, start_step=start)
@@ -51,7 +51,7 @@ def flow_phase(model, ema, optimizer, episodes, cameras, cfg, device) -> Phase:
     def step(b) -> dict:
         memory = b["memory"].to(device) / model.latent_scale
         memory = memory + cfg.flow.memory_noise * torch.randn_like(memory)
-        maps = _maps(b["proprio"], b["task_id"], cameras, model.map_size).to(device)
+        maps = _maps(b["proprio"].to(device), b["task_id"], cameras, model.map_size)  # drawn where the model runs
         loss = model.flow_loss(memory, maps, b["target"].to(device) / model.latent_scale, b["actions"].to(device),
                                b["valid"].to(device))
         optimize(loss, optimizer, clip=1.0, params=list(model.velocity.parameters()))
@@ -60,18 +60,19 @@ def flow_phase(model, ema, optimizer, episodes, cameras, cfg, device) -> Phase:
     return Phase("flow", cfg.flow.steps, draw, step)
 
 
-def rollout_phase(model, ema, optimizer, episodes, cameras, cfg, device) -> Phase:
+def rollout_phase(model, ema, optimizer, chunks_of, cameras, cfg, device) -> Phase:
     """Phase 3, open-loop training. Imagined rollouts start from real frames and then feed on their
     own predictions, which teacher forcing never shows the model: the arm blurs a little per chunk
     and the blur compounds. Here the model first imagines `depth` chunks of the recorded actions
     itself, exactly as imagination does (its sampler and static snap, no gradient), and the flow
     loss then asks for the next chunk's *real* latents from that imagined memory: it learns to
     pull a drifted rollout back to what the actions do. depth is drawn per step from 0 (the
-    teacher-forced loss, which keeps one-chunk accuracy) to `rollout.chunks`."""
+    teacher-forced loss, which keeps one-chunk accuracy) to `rollout.chunks`.
+    `chunks_of(chunks_ahead)` gives the LatentChunks (`episode_chunks` from episodes, or a latent pack's)."""
     ahead = cfg.rollout.chunks + 1
 
     def draw(start: int):
-        chunks = _latent_chunks(model, episodes, device, fresh=False, chunks_ahead=ahead)
+        chunks = chunks_of(ahead)
         return zip(count(start), batches(chunks, cfg.rollout.batch_size, cfg.seed + 2, start_step=start))
 
     def step(item) -> dict:
@@ -80,7 +81,7 @@ def rollout_phase(model, ema, optimizer, episodes, cameras, cfg, device) -> Phas
         depth = int(torch.randint(ahead, (1,), generator=g))
         k, n = model.chunk, (depth + 1) * model.chunk
         past = b["past"].to(device) / model.latent_scale
-        maps = _maps(b["proprio"][:, :n], b["task_id"], cameras, model.map_size).to(device)
+        maps = _maps(b["proprio"][:, :n].to(device), b["task_id"], cameras, model.map_size)
         actions = b["actions"][:, :n].float().to(device)
         history = past
         for c in range(depth):  # no_grad inside next_chunk: the memory is an input, as at inference
@@ -107,7 +108,9 @@ def _update_ema(ema, model, decay: float) -> None:
         be.copy_(bm)
 
 
-def _latent_chunks(model, episodes, device, fresh: bool, chunks_ahead: int = 1) -> LatentChunks:
+def episode_chunks(model, episodes, device, fresh: bool, chunks_ahead: int = 1) -> LatentChunks:
+    """Every frame of `episodes` encoded once by the model's autoencoder, sliced into chunks; `fresh`
+    first sets the latent scales from them (entering phase 2)."""
     model.eval()
     cam = next(iter(episodes[0].images))
     latents = [encode_episode_frames(model, ep.images[cam], device=device) for ep in episodes]

@@ -8,11 +8,14 @@ time the kinematic model supplies them).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from worldenv_core.data.episode import Episode
+if TYPE_CHECKING:  # not at run time: the episode package imports MCAP, which a latent pack's GPU host lacks
+    from worldenv_core.data.episode import Episode
 
 
 @torch.no_grad()

@@ -105,3 +105,57 @@ def test_open_loop_fine_tuning_keeps_the_latent_space_and_held_out_episodes_and_
     for h, v in report.items():  # the starting model, measured again on the same starts, scores what it recorded
         assert (v["start_psnr"], v["start_ssim"]) == pytest.approx((recorded[h]["model_psnr"], recorded[h]["model_ssim"]),
                                                                    abs=1e-6)
+
+
+def test_latent_pack_trains_open_loop_off_the_episodes_and_refuses_another_autoencoder(demo_experiment, contract,
+                                                                                          tmp_path):
+    """The GPU route of phase 3: the training episodes packed as the model's latents, trained on with
+    no episode or simulator at hand, into a checkpoint like `init_from`'s (resumable, snapshots)."""
+    import shutil
+
+    import torch
+    from safetensors.torch import load_file, save_file
+
+    from stages.train_worldsim import from_pack, latent_pack
+    from worldenv_core.models.checkpoint import CheckpointError
+
+    exp = demo_experiment
+    train_worldsim(cfg(exp, "expert_only=true"))  # (resumes the finished run of the tests above)
+    m = Manifest(exp)
+    base = next(p for p in m.resolve(m.latest("train_worldsim", task="tiny", data="expert"))
+                if p.name == "model.safetensors").parent
+    start, start_meta = load_checkpoint(base, "worldsim", contract())
+    pack = latent_pack.main([str(base), str(exp / "data" / "*" / "*" / "*" / "*.mcap"), "--out", str(tmp_path / "pack.st")])
+    latents, episodes, meta = latent_pack.read_pack(pack, base)
+    keys = json.loads(meta["keys"])
+    assert len(keys) == len(episodes) == 1 and keys[0] not in start_meta["held_out"]  # 2 demos, 1 held out
+    real = read_episode(next((exp / "data").rglob(keys[0].split("/")[-1])), cameras=["agentview"])
+    assert np.array_equal(episodes[0].actions, real.actions) and len(latents[0]) == real.num_frames
+    with torch.no_grad():
+        want = start.autoencoder.encode(torch.from_numpy(real.images["agentview"]).permute(0, 3, 1, 2))
+    assert torch.allclose(latents[0], want, atol=2e-3 * float(want.abs().max()))  # stored as fp16
+
+    args = [str(pack), str(base), "--work", str(tmp_path / "w"), "--steps", "4", "--snapshots", "2",
+            "rollout.chunks=2", "rollout.batch_size=4", "log_every=1", "checkpoint_every=2"]
+    final = from_pack.main(args)
+    model, meta = load_checkpoint(final, "worldsim", contract())
+    assert meta["held_out"] == start_meta["held_out"] and meta["kinematics"] == start_meta["kinematics"]
+    assert meta["rollout_steps"] == 4 and meta["rollout_chunks"] == 2 and meta["trained_from"]["episodes"] == 1
+    tuned = model.state_dict()
+    assert all(torch.equal(v, tuned[n]) for n, v in start.state_dict().items() if not n.startswith("velocity."))
+    assert any(not torch.equal(v, tuned[n]) for n, v in start.state_dict().items() if n.startswith("velocity."))
+    assert load_checkpoint(tmp_path / "w" / "snapshot_2", "worldsim", contract())[1]["rollout_steps"] == 2
+    weights = (final / "model.safetensors").read_bytes()
+    from_pack.main(args)  # the same command again: resumes at the end, trains nothing
+    assert (final / "model.safetensors").read_bytes() == weights
+    # a model trained on from the packed one keeps its autoencoder, so the pack still serves it ...
+    assert latent_pack.read_pack(pack, final)[2]["keys"] == json.dumps(keys)
+    # ... but one with another autoencoder would read the pack's latents as its own: refused
+    other = tmp_path / "other"
+    shutil.copytree(base, other)
+    state = load_file(str(other / "model.safetensors"))
+    name = next(k for k in state if k.startswith("autoencoder.") and state[k].is_floating_point())
+    state[name] = state[name] + 1e-3
+    save_file(state, str(other / "model.safetensors"))
+    with pytest.raises(CheckpointError, match="another autoencoder"):
+        from_pack.main([str(pack), str(other), "--work", str(tmp_path / "w2"), "--steps", "1"])
