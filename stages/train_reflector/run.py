@@ -19,7 +19,8 @@ from omegaconf import DictConfig, OmegaConf
 from stages.train_reflector.evaluation import evaluate_held_out, headline
 from stages.train_reflector.training import cross_validate_eta, fit, imagined_copies
 from worldenv_core.data.selection import collected_episodes, episode_key, load_split
-from worldenv_core.imagination.pairs import checked_episodes
+from worldenv_core.imagination.pairs import calibration_rows, calibration_starts, checked_episodes, eta_on_pairs
+from worldenv_core.imagination.verdict import ETA_GRID, rescored
 from worldenv_core.manifest import StageRun
 from worldenv_core.models.checkpoint import save_model
 from worldenv_core.rl.termination import check_eta
@@ -54,6 +55,9 @@ def validate(cfg: DictConfig) -> None:
                           f"({cfg.train.checkpoint_every}) so a resumed run mines what it mined; got {cfg.train.mine.every}")
     if not 0.0 <= cfg.train.mine.threshold <= 1.0:
         raise ConfigError(f"train.mine.threshold must be in [0, 1], got {cfg.train.mine.threshold}")
+    positive_int(cfg, "train.pairs_eta_every", allow_zero=True)
+    if cfg.train.pairs_eta_every and not cfg.train.pairs_from:
+        raise ConfigError("train.pairs_eta_every sets pairs aside to choose eta: give the pairs (train.pairs_from)")
     if cfg.train.pairs_from and cfg.eta_folds:
         raise ConfigError("train.pairs_from with eta_folds: the folds split real episodes, not pairs; train with "
                           "eta_folds=0 and read the eta chosen on held-out replays off evaluate_imagination's report")
@@ -91,8 +95,9 @@ def run(cfg: DictConfig) -> dict:
         key = {k: v for k, v in config.items() if k not in ("imagined", "plots", "eta_folds")}
         # train.with_imagined is named by the world model it imagines with (below), if on; pairs_from by
         # the pair folders, if any (so a reflector trained without pairs keeps its work dir)
-        key["train"] = {k: v for k, v in key["train"].items() if k not in ("with_imagined", "pairs_from")}
-        pairs, pair_folders = paired_training(cfg, stage, contract, episodes, held)
+        key["train"] = {k: v for k, v in key["train"].items() if k not in ("with_imagined", "pairs_from")
+                        and not (k == "pairs_eta_every" and not v)}  # added later: off keeps old work dirs
+        pairs, pair_folders, calibration = paired_training(cfg, stage, contract, episodes, held)
         if pair_folders:
             key["train"]["pairs_from"] = pair_folders
         dreamed, worldsim = None, None
@@ -124,6 +129,16 @@ def run(cfg: DictConfig) -> dict:
         # the checkpoint carries the threshold to use it at (evaluate / post_train_loop with eta=null);
         # a cross-validated one is its own folder, so the plain one (and records naming it) stay as they are
         eta, chosen_by = (cv["chosen_eta"], f"{cfg.eta_folds}-fold cross-validation") if cv else (float(cfg.eta), "config")
+        on_pairs = None
+        if calibration:  # train.pairs_eta_every: the verdict's F1 on pairs it did not train on
+            instructions = {ep.meta.task_id: ep.meta.instruction for ep in episodes}
+            on_pairs = eta_on_pairs(calibration, lambda row, frames: rescored(model, instructions[int(row["task_id"])],
+                                                                              frames, encoder), ETA_GRID, float(cfg.eta))
+            (work / "eta_on_pairs.json").write_text(json.dumps(on_pairs, indent=2))
+            stage.add_output(work / "eta_on_pairs.json", kind="report")
+            eta, chosen_by = on_pairs["chosen_eta"], f"verdict F1 on {on_pairs['pairs']} held-out training pairs"
+            log.info("eta %.2f chosen on %d held-out training pairs (F1 %.3f, hack rate %.3f there)", eta,
+                     on_pairs["pairs"], on_pairs["at_chosen"]["f1"], on_pairs["at_chosen"]["hack_rate"])
         final = save_model(work / ("reflector" if cv is None else f"reflector-cv{cfg.eta_folds}"), model, model_cfg,
                            {**meta, "eta": eta, "eta_chosen_by": chosen_by, "step": cfg.train.steps})
         record_checkpoint(stage, final)
@@ -132,7 +147,8 @@ def run(cfg: DictConfig) -> dict:
         for name in ("reflector_eval.json", "reflector_eval.md", "reflector_curves.png"):
             stage.add_output(work / name, kind="report" if name.endswith(("json", "md")) else "plot")
         stage.metrics.update({"episodes": len(episodes), "held_out": len(held_eps), "steps": cfg.train.steps,
-                              "paired_episodes": len(pairs),
+                              "paired_episodes": len(pairs), "eta": eta, "eta_chosen_by": chosen_by,
+                              **({"eta_pairs": on_pairs["pairs"]} if on_pairs else {}),
                               "training": describe_training(cfg), "train_wall_s": round(train_s, 1),
                               "eval_wall_s": round(time.perf_counter() - t1, 1), "device": str(device),
                               "ranks": meta.get("ranks", 1),
@@ -141,26 +157,36 @@ def run(cfg: DictConfig) -> dict:
     return stage.metrics
 
 
-def paired_training(cfg, stage, contract, episodes: list, held: list[Path]) -> tuple[list, list[str]]:
+def paired_training(cfg, stage, contract, episodes: list, held: list[Path]) -> tuple[list, list[str], list]:
     """`train.pairs_from`: both sides of each stored pair, labelled by the real outcome
-    (`imagination.pairs`), and the pair folders' names (part of the work dir's). Refused before
-    any training when a pair starts where an evaluation judges (its held-out episodes, init states)."""
+    (`imagination.pairs`), the pair folders' names (part of the work dir's), and the pairs set aside
+    to choose eta (`train.pairs_eta_every`). Refused before any training when a pair starts where an
+    evaluation judges (its held-out episodes, init states)."""
     instructions = {ep.meta.task_id: ep.meta.instruction for ep in episodes}
     forbidden = {episode_key(p) for p in held}
-    pairs, names = [], []
-    for ref in cfg.train.pairs_from:
-        folder = Path(str(ref))
-        if not folder.is_dir():  # a record id: its pairs.json sits in the work dir beside the stored frames
-            record = stage.manifest.get(str(ref))
-            if record.stage != "evaluate_imagination":
-                raise ConfigError(f"train.pairs_from: {ref} is a {record.stage} record, not evaluate_imagination's")
-            folder = next(p for p in stage.use(record, kind="report") if p.name == "pairs.json").parent
-        try:
-            got = checked_episodes(folder, instructions, forbidden)
-        except (ValueError, FileNotFoundError) as e:
-            raise ConfigError(f"train.pairs_from: {e}") from None
+    folders = [pair_folder(stage, ref) for ref in cfg.train.pairs_from]
+    pairs = []
+    try:
+        set_aside = calibration_starts(folders, int(cfg.train.pairs_eta_every))
+        per_folder = [(folder, checked_episodes(folder, instructions, forbidden, set_aside)) for folder in folders]
+    except (ValueError, FileNotFoundError) as e:
+        raise ConfigError(f"train.pairs_from: {e}") from None
+    for folder, got in per_folder:
         log.info("%s: %d paired rollouts (%d real successes), both sides", folder, len(got) // 2,
                  sum(ep.success.any() for ep in got) // 2)
         pairs += got
-        names.append(folder.name)
-    return pairs, names
+    calibration = calibration_rows(folders, set_aside)
+    if set_aside:
+        log.info("%d pairs from %d training episodes set aside to choose eta", len(calibration), len(set_aside))
+    return pairs, [f.name for f in folders], calibration
+
+
+def pair_folder(stage, ref) -> Path:
+    """A `train.pairs_from` entry as the evaluate_imagination work dir holding its pairs."""
+    folder = Path(str(ref))
+    if not folder.is_dir():  # a record id: its pairs.json sits in the work dir beside the stored frames
+        record = stage.manifest.get(str(ref))
+        if record.stage != "evaluate_imagination":
+            raise ConfigError(f"train.pairs_from: {ref} is a {record.stage} record, not evaluate_imagination's")
+        folder = next(p for p in stage.use(record, kind="report") if p.name == "pairs.json").parent
+    return folder

@@ -1,10 +1,12 @@
 """Re-measure a trained world simulator's open-loop fidelity with other render settings.
 
-    python -m stages.train_worldsim.fidelity outputs/libero_goal-small [--record ID]
+    python -m stages.train_worldsim.fidelity outputs/libero_goal-small [--record ID] [--model FOLDER]
         [--detail-gate 0 0.1 0.3] [--sampling-steps 1 2] [--noise-scale 1 0] [--static-snap 0 0.2]
+        [--horizons 8 16 32 64 128]
 
-Reads the train_worldsim record (default: the newest), its checkpoint and the same held-out
-episodes its training held out, and prints PSNR / SSIM beside copy-the-last-frame for every
+Reads the train_worldsim record (default: the newest), its checkpoint (or `--model`, a checkpoint
+folder trained on from it elsewhere, e.g. by `from_pack`) and the held-out episodes of that
+checkpoint, and prints PSNR / SSIM beside copy-the-last-frame for every
 combination of detail gate, sampling steps, sampler temperature and static snap: the sweep
 behind the defaults `detail_gate`, `noise_scale` and `static_snap`.
 Nothing is trained and nothing is written.
@@ -19,7 +21,7 @@ from omegaconf import OmegaConf
 
 from stages.train_worldsim.evaluation import fidelity_by_horizon
 from worldenv_core.data.mcap_io import read_episode
-from worldenv_core.data.selection import holdout_split
+from worldenv_core.data.selection import episode_key, holdout_split
 from worldenv_core.kinematics.camera import PinholeCamera
 from worldenv_core.kinematics.next_state import NextStateModel
 from worldenv_core.manifest import Manifest
@@ -35,18 +37,25 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--sampling-steps", type=int, nargs="+", default=[None], help="default: the checkpoint's")
     ap.add_argument("--noise-scale", type=float, nargs="+", default=[None], help="default: the checkpoint's")
     ap.add_argument("--static-snap", type=float, nargs="+", default=[None], help="default: the checkpoint's")
+    ap.add_argument("--model", help="a checkpoint folder to measure instead of the record's (same held-out episodes)")
+    ap.add_argument("--horizons", type=int, nargs="+", help="default: the record's fidelity.horizons")
     args = ap.parse_args(argv)
     manifest = Manifest(args.experiment_dir)
     record = manifest.get(args.record) if args.record else manifest.latest("train_worldsim")
     cfg = OmegaConf.create(record.config)
-    paths = [p for rid in record.inputs for p in manifest.resolve(manifest.get(rid), kind="episodes")]
-    _, held = holdout_split(paths, cfg.holdout_every)
-    held_eps = [read_episode(p, cameras=[cfg.camera]) for p in held]
-    model, config = load_model(manifest.resolve(record, kind="checkpoint")[0].parent)
+    if args.horizons:
+        cfg.fidelity.horizons = args.horizons
+    model, config = load_model(args.model or manifest.resolve(record, kind="checkpoint")[0].parent)
     meta = config["meta"]
+    paths = [p for rid in record.inputs for p in manifest.resolve(manifest.get(rid), kind="episodes")]
+    if "held_out" in meta:  # the checkpoint's own split (a model trained on from another keeps its start's)
+        held = [p for p in paths if episode_key(p) in set(meta["held_out"])]
+    else:
+        _, held = holdout_split(paths, cfg.holdout_every)
+    held_eps = [read_episode(p, cameras=[cfg.camera]) for p in held]
     kinematics = NextStateModel(**meta["kinematics"])
     cameras = {int(t): PinholeCamera.from_dict(c) for t, c in meta["cameras"].items()}
-    print(f"{record.id}: {len(held_eps)} held-out episodes, {cfg.fidelity.starts_per_episode} starts each\n")
+    print(f"{args.model or record.id}: {len(held_eps)} held-out episodes, {cfg.fidelity.starts_per_episode} starts each\n")
     print("| detail gate | sampling steps | noise scale | static snap | horizon | PSNR model | PSNR copy-last | "
           "SSIM model | SSIM copy-last | SSIM static: model / copy | SSIM moving: model / copy |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")

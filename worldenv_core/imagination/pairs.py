@@ -71,17 +71,29 @@ def start_episode(row: dict) -> str | None:
     return episode_key(str(row["start"]).rsplit("@", 1)[0]) if row.get("context_kind") == "episode" else None
 
 
-def checked_episodes(folder: Path, instructions: dict[int, str], forbidden: set[str]) -> list[CheckedEpisode]:
+def calibration_starts(folders: list[Path], every: int) -> set[str]:
+    """The episodes whose pairs choose eta instead of training (`train.pairs_eta_every`): every
+    `every`-th distinct start episode of the pairs, in key order, so the set mixes tasks like the
+    whole; 0 = none."""
+    if not every:
+        return set()
+    starts = sorted({s for folder in folders for row, _ in paired_rows(folder) if (s := start_episode(row))})
+    return set(starts[every - 1::every])
+
+
+def checked_episodes(folder: Path, instructions: dict[int, str], forbidden: set[str],
+                     set_aside: set[str] = frozenset()) -> list[CheckedEpisode]:
     """Both sides of every pair in `folder` with its real labels. Refused when a pair starts at a
     benchmark init state (the evaluations') or in one of `forbidden` (the reflector's held-out
-    episodes): training there would score the test. Pairs whose real replay failed are skipped."""
+    episodes): training there would score the test. Pairs whose real replay failed are skipped,
+    and so are those starting in `set_aside` (kept to choose eta: `calibration_rows`)."""
     out = []
     for row, path in paired_rows(folder):
         start = start_episode(row)
         if start is None or start in forbidden:
             raise ValueError(f"{folder}: pair {path.name} starts {'at a benchmark init state' if start is None else 'in '
                              + start}, which evaluations judge on; make the pairs with contexts.source=training")
-        if row.get("real_error"):
+        if row.get("real_error") or start in set_aside:
             continue
         task = int(row["task_id"])
         if task not in instructions:
@@ -95,3 +107,29 @@ def checked_episodes(folder: Path, instructions: dict[int, str], forbidden: set[
             meta = SimpleNamespace(task_id=task, instruction=instructions[task], side=side, start=row["start"])
             out.append(CheckedEpisode(frames, success, meta, chunk))
     return out
+
+
+def calibration_rows(folders: list[Path], starts: set[str]) -> list[tuple[dict, Path]]:
+    """The stored pairs that start in `starts` (`calibration_starts`), real replay intact."""
+    return [(row, path) for folder in folders for row, path in paired_rows(folder)
+            if start_episode(row) in starts and not row.get("real_error")]
+
+
+def eta_on_pairs(rows: list[tuple[dict, Path]], score, grid, prior: float) -> dict:
+    """eta chosen on paired rollouts the reflector did not train on, by the verdict's own F1 (the
+    imagined stop against the real outcome of the same actions, `verdict_metrics`): the
+    threshold the verdict is used at, chosen on imagined video, not on real frames.
+    `score(row, imagined_frames) -> R after every check`."""
+    from worldenv_core.imagination.verdict import verdict_metrics
+    from worldenv_core.rl.termination import best_eta
+
+    rescored = []
+    for i, (row, path) in enumerate(rows):
+        with np.load(path) as f:
+            rescored.append({**row, "context": i, "imagined_scores": score(row, f["imagined"])})
+    sweep = {e: verdict_metrics(rescored, e) for e in grid}
+    chosen = best_eta({e: m["f1"] for e, m in sweep.items()}, prior)
+    return {"pairs": len(rows), "chosen_eta": chosen,
+            "eta_sweep": {str(e): {k: m[k] for k in ("f1", "precision", "recall", "hack_rate", "imagined_success",
+                                                      "real_success")} for e, m in sweep.items()},
+            "at_chosen": {k: sweep[chosen][k] for k in ("f1", "precision", "recall", "hack_rate", "auroc")}}

@@ -5,7 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from worldenv_core.imagination.pairs import checked_episodes, store_pair_frames
+from worldenv_core.imagination.pairs import (calibration_rows, calibration_starts, checked_episodes, eta_on_pairs,
+                                             store_pair_frames)
 from worldenv_core.models.reflector_data import PrefixSampler
 
 EPISODE = "/data/tiny/expert-0/task00/expert_0001.mcap"
@@ -57,3 +58,24 @@ def test_the_sampler_counts_stride_delay_and_hard_window_in_a_check_only_episode
     assert {tuple(x) for x in sampler.hard} == {(i, t) for i in (0, 1) for t in (1, 2)}  # 16 steps = 2 checks
     batch = sampler.gather(np.array([[0, 4]]))
     assert batch["mask"].sum() == 5 and batch["frames"][0, :5, 0, 0, 0].tolist() == [0, 1, 2, 3, 4]  # every check
+
+
+def test_pairs_set_aside_choose_eta_by_the_verdicts_f1_and_are_not_trained_on(tmp_path):
+    starts = [f"/data/tiny/expert-0/task00/expert_000{i}.mcap@12" for i in range(4)]
+    # two real successes (by step 13) and two failures, one start episode each
+    write_pairs(tmp_path, [row(13, start=starts[0]), row(13, start=starts[1]), row(None, start=starts[2]),
+                           row(None, start=starts[3])])
+    aside = calibration_starts([tmp_path], 2)
+    assert aside == {"expert-0/task00/expert_0001.mcap", "expert-0/task00/expert_0003.mcap"}  # every 2nd, key order
+    assert calibration_starts([tmp_path], 0) == set()
+    trained = checked_episodes(tmp_path, {0: "x"}, forbidden=set(), set_aside=aside)
+    assert {ep.meta.start for ep in trained} == {starts[0], starts[2]}
+    held = [({**r, "real_scores": [0.0] * 5}, path) for r, path in calibration_rows([tmp_path], aside)]
+    assert [r["start"] for r, _ in held] == [starts[1], starts[3]]
+    # a scorer whose R reaches 0.7 on the real success (after it) and 0.4 on the failure: only an eta in
+    # [0.4, 0.7) stops the one and not the other; ties go to the eta closest to the prior
+    peak = {starts[1]: 0.7, starts[3]: 0.4}
+    score = lambda r, frames: [0.0, 0.0] + [peak[r["start"]]] * (len(frames) - 2)  # noqa: E731 (from step 16 on)
+    out = eta_on_pairs(held, score, grid=(0.3, 0.5, 0.65, 0.8), prior=0.5)
+    assert out["pairs"] == 2 and out["chosen_eta"] == 0.5 and out["at_chosen"]["f1"] == 1.0
+    assert out["eta_sweep"]["0.3"]["hack_rate"] == 0.5 and out["eta_sweep"]["0.8"]["imagined_success"] == 0.0
