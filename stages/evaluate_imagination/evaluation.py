@@ -234,11 +234,19 @@ def _replay_eta(r: dict) -> str:
     return f"{_num(r['f1'])} / {_pct(r['hack_rate'])} ({', '.join(f'{e:g}' for e in r['etas'])})"
 
 
+def _fidelity_path(record) -> str:
+    return next((a.path for a in record.files("report") if Path(a.path).name == "fidelity.json"), record.id)
+
+
 def section(ctx: ReportContext, limit: int = 8) -> list[str]:
     """One row per recent run (the before/after table of the levers), then the newest run's
     policies, tasks, frames along the pairs, plot and GIFs."""
     # pairs on training contexts are a reflector's training data (contexts=training), not a measurement
-    runs = [r for r in ctx.find("evaluate_imagination") if r.tags.get("contexts") != "training"][-limit:]
+    runs = [r for r in ctx.find("evaluate_imagination") if r.tags.get("contexts") != "training"]
+    # a re-run into the same work dir (rescoring its pairs with more reflectors) rewrites the same
+    # report: one row per work dir, at the place of its newest run
+    newest_of = {_fidelity_path(r): r for r in runs}
+    runs = [r for r in runs if newest_of[_fidelity_path(r)] is r][-limit:]
     if not runs:
         return []
     rows, judgements = [], []

@@ -68,6 +68,8 @@ def test_a_reflector_named_later_judges_the_stored_pairs_without_a_rollout(paire
         assert judged[key] == pytest.approx(summary["headline"][key], nan_ok=True)
     section = (Path(exp) / "report" / "report.md").read_text().split("## Verdict fidelity")[1].split("\n## ")[0]
     assert "Reflectors judging the same pairs" in section
+    table = section.split("| world model | reflector |")[1].split("\n\n")[0]
+    assert len([line for line in table.splitlines() if line.startswith("| ")]) == 1  # the re-run rewrote its row
     with pytest.raises(ConfigError, match="store_frames=true"):
         evaluate_imagination(stage_cfg("evaluate_imagination", exp, *PAIRED, f"more_reflectors=[{rid}]", "store_frames=false"))
 
@@ -152,3 +154,14 @@ def test_pairs_on_training_episodes_train_a_reflector_and_count_as_its_training_
     with pytest.raises(ConfigError, match="train.pairs_from with eta_folds"):
         train_reflector(stage_cfg("train_reflector", exp, *[o for o in REFLECTOR if not o.startswith("eta_folds")],
                                   f"train.pairs_from=[{rec.id}]", "eta_folds=2"))
+    # train.pairs_eta_every: pairs of every K-th start episode choose eta instead of training (here
+    # K = 1: the one training demo's 4 pairs), and the checkpoint carries what they chose
+    aside = train_reflector(stage_cfg("train_reflector", exp, *REFLECTOR, f"train.pairs_from=[{rec.id}]",
+                                      "train.pairs_eta_every=1"))
+    assert aside["paired_episodes"] == 0 and aside["eta_pairs"] == 4
+    assert aside["eta_chosen_by"] == "verdict F1 on 4 held-out training pairs"
+    ckpt = next(p for p in Manifest(exp).resolve(Manifest(exp).latest("train_reflector", task="tiny"))
+                if p.name == "config.json")
+    assert json.loads(ckpt.read_text())["meta"]["eta"] == aside["eta"]
+    with pytest.raises(ConfigError, match="pairs_eta_every sets pairs aside"):
+        train_reflector(stage_cfg("train_reflector", exp, *REFLECTOR, "train.pairs_eta_every=2"))
