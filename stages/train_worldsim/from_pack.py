@@ -31,6 +31,7 @@ from worldenv_core.kinematics.camera import PinholeCamera
 from worldenv_core.models.checkpoint import load_checkpoint, read_config, save_model
 from worldenv_core.tracking import make_tracker
 from worldenv_core.training import Trainer, pick_device
+from worldenv_core.viz import plot_history
 
 log = logging.getLogger("worldenv.train_worldsim.from_pack")
 CONF = Path(__file__).resolve().parents[2] / "conf"
@@ -129,6 +130,7 @@ def main(argv: list[str] | None = None) -> Path:
     final = trainer.save_final(work / "worldsim", model=ema)
     trainer.tracker.close()
     (work / "history.json").write_text(json.dumps(trainer.history))
+    plot_history(trainer.history, work / "losses.png", f"train_worldsim from a latent pack {base_meta['task']}")
     log.info("saved %s (%d steps, %.0f s this sitting)", final, steps, trainer.wall_s)
     return final
 

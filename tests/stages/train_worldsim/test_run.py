@@ -145,6 +145,7 @@ def test_latent_pack_trains_open_loop_off_the_episodes_and_refuses_another_autoe
     assert all(torch.equal(v, tuned[n]) for n, v in start.state_dict().items() if not n.startswith("velocity."))
     assert any(not torch.equal(v, tuned[n]) for n, v in start.state_dict().items() if n.startswith("velocity."))
     assert load_checkpoint(tmp_path / "w" / "snapshot_2", "worldsim", contract())[1]["rollout_steps"] == 2
+    assert (tmp_path / "w" / "losses.png").exists() and list((tmp_path / "w" / "tensorboard").glob("events.*"))
     weights = (final / "model.safetensors").read_bytes()
     from_pack.main(args)  # the same command again: resumes at the end, trains nothing
     assert (final / "model.safetensors").read_bytes() == weights
