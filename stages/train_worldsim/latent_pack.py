@@ -110,7 +110,7 @@ def pack_chunks(latents, episodes, model, chunks_ahead: int) -> LatentChunks:
 
 
 def main(argv: list[str] | None = None) -> Path:
-    from worldenv_core.data.selection import load_split
+    from worldenv_core.data.selection import episode_key, load_split
     from worldenv_core.models.checkpoint import load_checkpoint
     from stages.train_worldsim.training import episode_chunks
 
@@ -124,11 +124,9 @@ def main(argv: list[str] | None = None) -> Path:
     if missing:
         raise FileNotFoundError(f"episode files not found: {missing[:3]}")
     model, meta = load_checkpoint(args.model, "worldsim")
-    _, _, episodes, _ = load_split(paths, 0, meta["camera"], meta["held_out"])
-    keys = [str(q) for q in paths if "/".join(q.parts[-3:]) not in set(meta["held_out"])]
+    train, _, episodes, _ = load_split(paths, 0, meta["camera"], meta["held_out"])
     chunks = episode_chunks(model, episodes, "cpu", fresh=False)
-    out = write_pack(args.out, chunks.latents, episodes, ["/".join(Path(k).parts[-3:]) for k in keys], args.model,
-                     meta["camera"])
+    out = write_pack(args.out, chunks.latents, episodes, [episode_key(q) for q in train], args.model, meta["camera"])
     frames = sum(len(z) for z in chunks.latents)
     print(f"{out}: {len(episodes)} episodes, {frames} frames, {out.stat().st_size / 2**20:.1f} MiB "
           f"({len(meta['held_out'])} held-out keys of the model left out)")
