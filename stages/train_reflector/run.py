@@ -97,7 +97,8 @@ def run(cfg: DictConfig) -> dict:
         # the pair folders, if any (so a reflector trained without pairs keeps its work dir)
         key["train"] = {k: v for k, v in key["train"].items() if k not in ("with_imagined", "pairs_from")
                         and not (k == "pairs_eta_every" and not v)}  # added later: off keeps old work dirs
-        pairs, pair_folders, calibration = paired_training(cfg, stage, contract, episodes, held)
+        instructions = {ep.meta.task_id: ep.meta.instruction for ep in episodes}
+        pairs, pair_folders, calibration = paired_training(cfg, stage, instructions, held)
         if pair_folders:
             key["train"]["pairs_from"] = pair_folders
         dreamed, worldsim = None, None
@@ -131,7 +132,6 @@ def run(cfg: DictConfig) -> dict:
         eta, chosen_by = (cv["chosen_eta"], f"{cfg.eta_folds}-fold cross-validation") if cv else (float(cfg.eta), "config")
         on_pairs = None
         if calibration:  # train.pairs_eta_every: the verdict's F1 on pairs it did not train on
-            instructions = {ep.meta.task_id: ep.meta.instruction for ep in episodes}
             on_pairs = eta_on_pairs(calibration, lambda row, frames: rescored(model, instructions[int(row["task_id"])],
                                                                               frames, encoder), ETA_GRID, float(cfg.eta))
             (work / "eta_on_pairs.json").write_text(json.dumps(on_pairs, indent=2))
@@ -157,12 +157,12 @@ def run(cfg: DictConfig) -> dict:
     return stage.metrics
 
 
-def paired_training(cfg, stage, contract, episodes: list, held: list[Path]) -> tuple[list, list[str], list]:
+def paired_training(cfg, stage, instructions: dict[int, str], held: list[Path]) -> tuple[list, list[str], list]:
     """`train.pairs_from`: both sides of each stored pair, labelled by the real outcome
     (`imagination.pairs`), the pair folders' names (part of the work dir's), and the pairs set aside
     to choose eta (`train.pairs_eta_every`). Refused before any training when a pair starts where an
-    evaluation judges (its held-out episodes, init states)."""
-    instructions = {ep.meta.task_id: ep.meta.instruction for ep in episodes}
+    evaluation judges (its held-out episodes, init states). `instructions`: the training episodes'
+    by task."""
     forbidden = {episode_key(p) for p in held}
     folders = [pair_folder(stage, ref) for ref in cfg.train.pairs_from]
     pairs = []

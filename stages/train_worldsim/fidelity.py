@@ -49,7 +49,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     meta = config["meta"]
     paths = [p for rid in record.inputs for p in manifest.resolve(manifest.get(rid), kind="episodes")]
     if "held_out" in meta:  # the checkpoint's own split (a model trained on from another keeps its start's)
-        held = [p for p in paths if episode_key(p) in set(meta["held_out"])]
+        keys = set(meta["held_out"])
+        held = [p for p in paths if episode_key(p) in keys]
     else:
         _, held = holdout_split(paths, cfg.holdout_every)
     held_eps = [read_episode(p, cameras=[cfg.camera]) for p in held]

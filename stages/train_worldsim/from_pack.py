@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> Path:
     model = copy.deepcopy(base).to(device)
     ema = copy.deepcopy(model).requires_grad_(False)
     optimizer = torch.optim.AdamW(model.velocity.parameters(), lr=cfg.flow.lr)
-    chunks_of = lambda ahead: pack_chunks(latents, episodes, model, ahead)  # noqa: E731
+    chunks_of = lambda ahead: pack_chunks(latents, episodes, model, ahead)  # noqa: E731 (its chunk and memory offsets only)
 
     plan_file = work / "plan.json"
     if plan_file.exists():  # a resumed run trains to the total it first planned
@@ -96,8 +96,7 @@ def main(argv: list[str] | None = None) -> Path:
     else:  # time a few steps on copies, so the run itself starts from the untouched model
         probe_model, probe_ema = copy.deepcopy(model), copy.deepcopy(ema)
         probe_opt = torch.optim.AdamW(probe_model.velocity.parameters(), lr=cfg.flow.lr)
-        probe = rollout_phase(probe_model, probe_ema, probe_opt,
-                              lambda ahead: pack_chunks(latents, episodes, probe_model, ahead), cameras, cfg, device)
+        probe = rollout_phase(probe_model, probe_ema, probe_opt, chunks_of, cameras, cfg, device)
         steps = planned_steps(probe.step, iter(probe.batches(0)), args.minutes * 60)
         del probe_model, probe_ema, probe_opt, probe
     plan_file.write_text(json.dumps({"steps": steps, "overrides": args.overrides, "minutes": args.minutes}))

@@ -28,7 +28,7 @@ from safetensors import safe_open
 from safetensors.torch import save_file
 
 from worldenv_core.models.checkpoint import WEIGHTS, CheckpointError, read_config
-from worldenv_core.models.worldsim_data import LatentChunks
+from worldenv_core.models.worldsim_data import LatentChunks, encode_episode_frames
 
 FORMAT = "worldenv-latent-pack-1"
 
@@ -112,7 +112,6 @@ def pack_chunks(latents, episodes, model, chunks_ahead: int) -> LatentChunks:
 def main(argv: list[str] | None = None) -> Path:
     from worldenv_core.data.selection import episode_key, load_split
     from worldenv_core.models.checkpoint import load_checkpoint
-    from stages.train_worldsim.training import episode_chunks
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("model", help="the world model checkpoint folder that phase 3 goes on from")
@@ -125,9 +124,9 @@ def main(argv: list[str] | None = None) -> Path:
         raise FileNotFoundError(f"episode files not found: {missing[:3]}")
     model, meta = load_checkpoint(args.model, "worldsim")
     train, _, episodes, _ = load_split(paths, 0, meta["camera"], meta["held_out"])
-    chunks = episode_chunks(model, episodes, "cpu", fresh=False)
-    out = write_pack(args.out, chunks.latents, episodes, [episode_key(q) for q in train], args.model, meta["camera"])
-    frames = sum(len(z) for z in chunks.latents)
+    latents = [encode_episode_frames(model, ep.images[meta["camera"]]) for ep in episodes]
+    out = write_pack(args.out, latents, episodes, [episode_key(q) for q in train], args.model, meta["camera"])
+    frames = sum(len(z) for z in latents)
     print(f"{out}: {len(episodes)} episodes, {frames} frames, {out.stat().st_size / 2**20:.1f} MiB "
           f"({len(meta['held_out'])} held-out keys of the model left out)")
     return out
