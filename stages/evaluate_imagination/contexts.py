@@ -10,16 +10,15 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from worldenv_core.contract import TaskContract
 from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.data.selection import MissingEpisodesError, collected_episodes, episode_key
 from worldenv_core.envs.recording import cached_env
-from worldenv_core.envs.replay import RealStart, ReplayError, restore
+from worldenv_core.envs.replay import RealStart, StartJob, restore, unreplayable
 from worldenv_core.errors import ConfigError
-from worldenv_core.imagination.env import Context
+from worldenv_core.imagination.env import Context, mid_episode_frames
 from worldenv_core.models.checkpoint import read_config
 from worldenv_core.parallel import run_jobs
 
@@ -33,39 +32,13 @@ class PairedContext:
     kind: str  # "init" | "episode"
 
 
-@dataclass(frozen=True)
-class StartFrameJob:
-    contract: TaskContract
-    start: RealStart
-
-
-def start_frame(job: StartFrameJob) -> dict:
+def start_frame(job: StartJob) -> dict:
     """The real frame and proprio at a benchmark init state (what imagination starts from)."""
     c = job.contract
     env = cached_env(c.suite, job.start.task_id, c.cameras, c.image_size, render=True)
     frame = restore(env, job.start)
     return {"start": job.start, "image": env.render([c.cameras[0]])[c.cameras[0]], "proprio": frame.proprio,
             "instruction": env.instruction}
-
-
-def reproduces(job: StartFrameJob) -> dict:
-    """Whether replaying a recorded episode's prefix reaches its recorded state at the context frame
-    (the real side of every pair starts there); the error if not."""
-    c = job.contract
-    env = cached_env(c.suite, job.start.task_id, c.cameras, c.image_size, render=False)
-    try:
-        restore(env, job.start)
-    except ReplayError as e:
-        return {"start": job.start, "error": str(e)}
-    return {"start": job.start, "error": None}
-
-
-def mid_episode_frames(success: np.ndarray, length: int, n: int) -> list[int]:
-    """n (>= 0) frames spread over the part of an episode before its first success (the task not yet
-    done, so there is something left to judge), avoiding the first and the success frame."""
-    hits = np.flatnonzero(success)
-    end = int(hits[0]) if len(hits) else length
-    return sorted({int(round(end * (i + 1) / (n + 1))) for i in range(n)} - {0})
 
 
 def context_episodes(manifest, stage, contract: TaskContract, scale: str, worldsim: str, reflector: str,
@@ -99,7 +72,7 @@ def build_contexts(cfg, contract: TaskContract, held: list[Path]) -> tuple[list[
     pairs could not be judged). -> (contexts, the dropped ones' errors)."""
     c, camera = cfg.contexts, contract.cameras[0]
     tasks = contract.resolved_task_ids()
-    jobs = [StartFrameJob(contract, RealStart(task_id=t, init_state=i)) for t in tasks for i in range(c.init_states)]
+    jobs = [StartJob(contract, RealStart(task_id=t, init_state=i)) for t in tasks for i in range(c.init_states)]
     out = []
     for r in sorted(run_jobs(start_frame, jobs, workers=cfg.workers, launcher=cfg.launcher, desc="context frames",
                              ray_address=cfg.ray_address, progress=cfg.progress, unit="ctx"),
@@ -119,10 +92,8 @@ def build_contexts(cfg, contract: TaskContract, held: list[Path]) -> tuple[list[
         for f in starts + mid_episode_frames(ep.success, ep.length, c.episode_frames):
             episodes.append(PairedContext(RealStart(task_id=t, seed=ep.meta.seed, episode=str(path), frame=f),
                                           Context.from_episode(ep, camera, f), "episode"))
-    checks = run_jobs(reproduces, [StartFrameJob(contract, x.start) for x in episodes], workers=cfg.workers,
-                      launcher=cfg.launcher, desc="context replays", ray_address=cfg.ray_address, progress=cfg.progress,
-                      unit="ctx")
-    errors = {r["start"].key: r["error"] for r in checks if r["error"]}
+    errors = unreplayable(contract, [x.start for x in episodes], workers=cfg.workers, launcher=cfg.launcher,
+                          ray_address=cfg.ray_address, progress=cfg.progress)
     for key, error in errors.items():
         log.warning("context dropped: %s", error)
     return out + [x for x in episodes if x.start.key not in errors], sorted(errors.values())

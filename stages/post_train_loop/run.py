@@ -28,7 +28,7 @@ from stages.post_train_loop.sweep import sweep_dir, write_summary
 from stages.post_train_loop.training import (contexts_from_episodes, imagined_collector, real_collector, real_starts,
                                              rl_phase)
 from worldenv_core.distributed import launched
-from worldenv_core.envs.replay import RealStart
+from worldenv_core.envs.replay import RealStart, unreplayable
 from worldenv_core.imagination.env import build_imagined_env
 from worldenv_core.data.selection import collected_episodes
 from worldenv_core.manifest import StageRun
@@ -63,6 +63,7 @@ def validate(cfg: DictConfig) -> None:
     positive_int(cfg, "eval.imagined_contexts", allow_zero=True)
     positive_int(cfg, "eval.record_contexts", allow_zero=True)
     positive_int(cfg, "eval.paired_contexts", allow_zero=True)
+    positive_int(cfg, "rl.mid_episode_frames", allow_zero=True)
     if cfg.eval.imagined_contexts and cfg.eval.imagined_rollouts < 2:
         raise ConfigError(f"eval.imagined_rollouts must be at least 2, got {cfg.eval.imagined_rollouts}")
     if not isinstance(cfg.rl.n_rollouts, int) or cfg.rl.n_rollouts < 2:
@@ -96,15 +97,27 @@ def run(cfg: DictConfig) -> dict:
         policy, pmeta = load_checkpoint(policy_path, "policy", contract, device=str(device))
         task_ids = set(contract.resolved_task_ids())  # task.task_ids=[...] trains on those tasks' contexts only
         episodes = collected_episodes(manifest, stage, contract.name, cfg.scale.name, cfg.expert_only)
+
+        def chosen(starts: list[RealStart]) -> list[int]:
+            """The starts of the tasks trained on (`task.task_ids`), less the mid-episode ones whose
+            recorded prefix does not replay (no real rollout or paired replay could start there),
+            dropped and named before any rollout."""
+            mine = [i for i, st in enumerate(starts) if st.task_id in task_ids]
+            errors = unreplayable(contract, [starts[i] for i in mine], workers=cfg.eval.workers,
+                                  progress=cfg.progress) if rl.mid_episode_frames else {}
+            for error in errors.values():
+                log.warning("context dropped: %s", error)
+            stage.metrics["dropped_contexts"] = len(errors)
+            return [i for i in mine if starts[i].key not in errors]
         if real:  # the reference: no world model, no reflector; the oracle decides
             worldsim_path = reflector_path = env = None
             camera, eta = contract.cameras[0], None
             stage.record.tags["eta"] = None
             if policy.cameras != [camera]:
                 raise ConfigError(f"the policy looks at {policy.cameras}; env=real renders only {camera!r} for it")
-            starts, instructions = real_starts(episodes)
-            chosen = [i for i, st in enumerate(starts) if st.task_id in task_ids]
-            starts, instructions = [starts[i] for i in chosen], [instructions[i] for i in chosen]
+            starts, instructions = real_starts(episodes, rl.mid_episode_frames)
+            keep = chosen(starts)
+            starts, instructions = [starts[i] for i in keep], [instructions[i] for i in keep]
             n_contexts = len(starts)
         else:
             worldsim_path = resolve_checkpoint(stage, cfg.worldsim_from, "train_worldsim", contract.name, cfg.scale.name)
@@ -115,17 +128,19 @@ def run(cfg: DictConfig) -> dict:
                                              device, contract, rl.sampler_noise)
             if policy.cameras != [camera]:
                 raise ConfigError(f"the policy looks at {policy.cameras}, but the world simulator imagines only {camera!r}")
-            kept = [(c, p) for c, p in zip(contexts_from_episodes(episodes, camera), episodes) if c.task_id in task_ids]
-            contexts = [c for c, _ in kept]
-            # where each context starts in the real simulator: the paired replays at evaluations
-            starts = [RealStart(task_id=c.task_id, episode=str(p), frame=0) for c, p in kept]
+            contexts, starts = contexts_from_episodes(episodes, camera, rl.mid_episode_frames)
+            keep = chosen(starts)
+            contexts, starts = [contexts[i] for i in keep], [starts[i] for i in keep]
             n_contexts = len(contexts)
         if not n_contexts:
             raise ConfigError(f"no collected episode of task(s) {sorted(task_ids)} to start rollouts from")
+        stage.metrics["contexts"] = n_contexts
         # The work dir (what resume finds) is named by what defines the training and by its inputs,
         # not by how it is evaluated or shown: changing eval.* or progress continues the same run.
-        work = work_dir(cfg.experiment_dir, "post_train_loop",
-                        {k: v for k, v in config.items() if k not in ("eval", "progress")}, stage.work_inputs())
+        key = {k: v for k, v in config.items() if k not in ("eval", "progress")}
+        if not rl.mid_episode_frames:  # added later: first frames only keeps the work dirs of earlier runs
+            key["rl"] = {k: v for k, v in key["rl"].items() if k != "mid_episode_frames"}
+        work = work_dir(cfg.experiment_dir, "post_train_loop", key, stage.work_inputs())
         stage.lock(work)  # one run at a time trains into a work dir
         optimizer = torch.optim.Adam(policy_param_groups(policy, rl.lr_backbone, rl.lr_heads))
         provenance = {"policy": policy_path, "worldsim": worldsim_path, "reflector": reflector_path}

@@ -16,7 +16,7 @@ import torch
 from worldenv_core import distributed
 from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.envs.replay import RealStart
-from worldenv_core.imagination.env import Context
+from worldenv_core.imagination.env import Context, mid_episode_frames
 from worldenv_core.models.checkpoint import save_model
 from worldenv_core.rl.loop import RolloutBatch, collect_rollouts, informative_groups, merge, ppo_update, select
 from worldenv_core.rl.real_rollouts import collect_real_rollouts
@@ -26,16 +26,34 @@ from worldenv_core.training import Phase, per_step, step_seed
 Collect = Callable[[torch.nn.Module, list[int], list[torch.Generator]], RolloutBatch]
 
 
-def contexts_from_episodes(paths: list[Path], camera: str) -> list[Context]:
-    """LOOP's contexts: the first frame, proprio and instruction of each collected episode."""
-    return [Context.from_episode(read_episode(p, cameras=[camera]), camera) for p in paths]
+def start_frames(ep, n_mid: int) -> list[int]:
+    """Where in a collected episode LOOP starts rollouts: its first frame (the paper), or with
+    `rl.mid_episode_frames` = n_mid > 0, n_mid frames spread over its part before the first success."""
+    return mid_episode_frames(ep.success, ep.length, n_mid) if n_mid else [0]
 
 
-def real_starts(paths: list[Path]) -> tuple[list[RealStart], list[str]]:
-    """The same contexts in the real simulator: each episode's first state (its scene rebuilt
-    from its seed), and its instruction."""
-    metas = [read_episode(p, cameras=[]).meta for p in paths]
-    return [RealStart(task_id=m.task_id, episode=str(p), frame=0) for p, m in zip(paths, metas)], [m.instruction for m in metas]
+def contexts_from_episodes(paths: list[Path], camera: str, mid_frames: int = 0) -> tuple[list[Context], list[RealStart]]:
+    """LOOP's contexts (frame, proprio and instruction at each start frame of each collected
+    episode) and where each starts in the real simulator (the paired replays at evaluations)."""
+    contexts, starts = [], []
+    for p in paths:
+        ep = read_episode(p, cameras=[camera])
+        for f in start_frames(ep, mid_frames):
+            contexts.append(Context.from_episode(ep, camera, f))
+            starts.append(RealStart(task_id=ep.meta.task_id, episode=str(p), frame=f))
+    return contexts, starts
+
+
+def real_starts(paths: list[Path], mid_frames: int = 0) -> tuple[list[RealStart], list[str]]:
+    """The same contexts in the real simulator (`env=real`): each start (its episode's scene rebuilt
+    from its seed, its actions replayed up to the start frame), and its instruction."""
+    starts, instructions = [], []
+    for p in paths:
+        ep = read_episode(p, cameras=[])
+        for f in start_frames(ep, mid_frames):
+            starts.append(RealStart(task_id=ep.meta.task_id, episode=str(p), frame=f))
+            instructions.append(ep.meta.instruction)
+    return starts, instructions
 
 
 def imagined_collector(env, contexts: list[Context], n_rollouts: int, encode) -> Collect:

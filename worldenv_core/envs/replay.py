@@ -47,6 +47,38 @@ class ReplayError(RuntimeError):
     """Replaying a recorded prefix did not reproduce the recorded state."""
 
 
+@dataclass(frozen=True)
+class StartJob:
+    """A worker job about one context start (picklable)."""
+
+    contract: TaskContract
+    start: RealStart
+
+
+def replays(job: StartJob) -> dict:
+    """Whether replaying a recorded episode's prefix reaches its recorded state at the context's
+    frame (a real rollout or a paired replay starts there); the error if not."""
+    c = job.contract
+    env = cached_env(c.suite, job.start.task_id, c.cameras, c.image_size, render=False)
+    try:
+        restore(env, job.start)
+    except ReplayError as e:
+        return {"start": job.start, "error": str(e)}
+    return {"start": job.start, "error": None}
+
+
+def unreplayable(contract: TaskContract, starts: list[RealStart], **run_kw) -> dict[str, str]:
+    """start key -> error, for the mid-episode starts whose recorded prefix does not replay to its
+    recorded state (a few demos do not: their contact is not reproducible from the seed). Checked
+    before any rollout so such a start is dropped, not met half way through a run. `run_kw`:
+    `run_jobs`' workers, launcher, ray_address, progress."""
+    from worldenv_core.parallel import run_jobs
+
+    jobs = [StartJob(contract, s) for s in starts if s.episode is not None and s.frame]
+    checks = run_jobs(replays, jobs, desc="context replays", unit="ctx", **run_kw) if jobs else []
+    return {r["start"].key: r["error"] for r in checks if r["error"]}
+
+
 def restore(env: LiberoEnv, start: RealStart, tolerance: float = 1e-3) -> Frame:
     """Put `env` at the context's start and return that frame (no images)."""
     if start.episode is None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from worldenv_core.imagination.simulator import ImaginedSimulator
@@ -32,6 +33,14 @@ class Context:
         return cls(task_id=ep.meta.task_id, instruction=ep.meta.instruction,
                    frame=torch.from_numpy(ep.images[camera][t]).permute(2, 0, 1).contiguous(),
                    proprio=torch.from_numpy(ep.proprio[t]))
+
+
+def mid_episode_frames(success: np.ndarray, length: int, n: int) -> list[int]:
+    """n (>= 0) frames spread over the part of an episode before its first success (the task not yet
+    done, so there is something left to judge), avoiding the first and the success frame."""
+    hits = np.flatnonzero(success)
+    end = int(hits[0]) if len(hits) else length
+    return sorted({int(round(end * (i + 1) / (n + 1))) for i in range(n)} - {0})
 
 
 @dataclass

@@ -7,7 +7,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stages.evaluate_imagination.contexts import mid_episode_frames
 from stages.evaluate_imagination.run import run as evaluate_imagination
 from tests.stages.conftest import stage_cfg
 from worldenv_core.manifest import Manifest
@@ -108,13 +107,6 @@ def test_checkpoint_folders_alone_serve_init_state_contexts(paired, tmp_path):
         f"policies=[{folder('train_policy')}]"))
     assert out["headline"]["rollouts"] == 2 and out["by_context"]["episode"]["rollouts"] == 0
     assert out["real_episodes"] == 2
-
-
-def test_mid_episode_frames_lie_before_the_first_success():
-    success = np.zeros(31, bool)
-    success[21:] = True
-    assert mid_episode_frames(success, 30, 2) == [7, 14]
-    assert mid_episode_frames(np.zeros(31, bool), 30, 1) == [15]
 
 
 def test_pairs_on_training_episodes_train_a_reflector_and_count_as_its_training_data(paired):

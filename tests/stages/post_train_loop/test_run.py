@@ -156,3 +156,20 @@ def test_the_real_simulator_reference_trains_on_real_rollouts_rewarded_by_the_or
     assert len(list(work.glob("behaviour_*"))) == 1  # the behaviour policy the workers loaded, the latest only
     with pytest.raises(ConfigError, match="env must be one of"):
         post_train_loop(cfg("post_train_loop", exp, *LOOP, "env=simulated"))
+
+
+def test_rollouts_start_part_way_through_the_collected_episodes(trained):
+    """rl.mid_episode_frames=n: LOOP's contexts are n recorded frames of each episode before its
+    first success, in imagination (the paired replays start there too) and in the real reference."""
+    exp, first = trained
+    mid = post_train_loop(cfg("post_train_loop", exp, *LOOP, "rl.mid_episode_frames=2", "eval.paired_contexts=1"))
+    assert mid["contexts"] == 2 * first["contexts"] and mid["dropped_contexts"] == 0
+    assert set(mid["paired_hack_rate"]) == {"0", "2"}  # replayed for real from the mid-episode frames
+    m = Manifest(exp)
+    works = {Path(r.files("checkpoint")[0].path).parts[-3] for r in m.find("post_train_loop", task="tiny", env="imagined")}
+    assert len(works) == 2  # a training of its own, not a resume of the first-frame run
+    real = post_train_loop(cfg("post_train_loop", exp, *LOOP, "env=real", "rl.mid_episode_frames=1", "rl.iterations=1",
+                               "eval.every=0"))
+    assert real["contexts"] == first["contexts"] and real["train_real_episodes"] == 2
+    with pytest.raises(ConfigError, match="mid_episode_frames"):
+        post_train_loop(cfg("post_train_loop", exp, *LOOP, "rl.mid_episode_frames=-1"))

@@ -1,7 +1,10 @@
 """The vectorised imagined environment: reset from contexts, chunked steps, termination at eta
 and at the horizon, rewards frozen at t_end, mixed-task batches."""
+import numpy as np
 import pytest
 import torch
+
+from worldenv_core.imagination.env import mid_episode_frames
 
 
 def test_rollouts_run_to_the_horizon_when_the_reflector_never_fires(make_env, contexts):
@@ -45,3 +48,10 @@ def test_unknown_task_and_bad_eta_are_clear_errors(make_env, contexts):
         env.reset(bad)
     with pytest.raises(ValueError, match=r"eta .* must be in \[0, 1\]"):
         make_env(eta=2.0)
+
+
+def test_mid_episode_frames_lie_before_the_first_success():
+    success = np.zeros(31, bool)
+    success[21:] = True
+    assert mid_episode_frames(success, 30, 2) == [7, 14]
+    assert mid_episode_frames(np.zeros(31, bool), 30, 1) == [15]
