@@ -72,7 +72,9 @@ def imagined_success(policy, env, contexts: list[Context], n_contexts: int, n_ro
                  "policy", env.chunk) for k, i in enumerate(chosen) for j in range(n_rollouts)]
     m = verdict_metrics(rows, env.eta)
     return {**out, "paired_hack_rate": m["hack_rate"], "paired_f1": m["f1"], "paired_real_success": m["real_success"],
-            "paired_imagined_success": m["imagined_success"], "paired_episodes": len(rows)}
+            "paired_imagined_success": m["imagined_success"], "paired_episodes": len(rows),
+            # do the policy's imagined groups disagree where its real ones do (LOOP's learning signal)?
+            **{f"paired_{k}_mixed": m[f"{k}_mixed_groups"] for k in ("imagined", "real") if f"{k}_mixed_groups" in m}}
 
 
 def record_imagined(policy, env, contexts: list[Context], n_contexts: int, contract: TaskContract, encoder,

@@ -191,6 +191,8 @@ def run(cfg: DictConfig) -> dict:
                               "real_episodes": len(by_step("real_success")) * cfg.eval.init_states
                               * len(contract.resolved_task_ids()) + sum(h.get("paired_episodes", 0) for h in history),
                               "paired_hack_rate": by_step("paired_hack_rate"),
+                              "paired_imagined_mixed": by_step("paired_imagined_mixed"),
+                              "paired_real_mixed": by_step("paired_real_mixed"),
                               # the reference trains on real episodes: what the imagined route is compared at
                               "train_real_episodes": rl.iterations * rl.contexts_per_iteration * rl.n_rollouts if real else 0,
                               "kept_groups": float(np.mean([h["kept_groups"] for h in history if "kept_groups" in h]

@@ -161,7 +161,22 @@ def verdict_metrics(rows: list[dict], eta: float) -> dict:
             "timing_error_median": float(np.median(timing)) if timing else float("nan"),
             "real_frames_auroc": on_real["auroc"], "real_frames_f1": on_real["f1"],
             "real_frames_precision": on_real["precision"], "real_frames_recall": on_real["recall"],
-            **{f"real_stop_{k}": own[k] for k in ("auroc", "f1", "precision", "recall")}}
+            **{f"real_stop_{k}": own[k] for k in ("auroc", "f1", "precision", "recall")},
+            **mixed_groups(rows, said, real)}
+
+
+def mixed_groups(rows: list[dict], said: np.ndarray, real: np.ndarray) -> dict:
+    """The fraction of contexts whose rollouts disagree, imagined and real: LOOP learns only from
+    such groups (RLOO advantages of a group that agrees are zero, or the reward model's noise), so an
+    imagination that agrees where reality does not gives the policy nothing to learn."""
+    groups: dict = {}
+    for i, r in enumerate(rows):
+        groups.setdefault((r.get("policy"), r.get("context_kind"), r.get("start") or r["context"]), []).append(i)
+    multi = [g for g in groups.values() if len(g) > 1]
+    if not multi:
+        return {}
+    mixed = lambda flags: float(np.mean([0 < flags[g].sum() < len(g) for g in multi]))  # noqa: E731
+    return {"imagined_mixed_groups": mixed(said), "real_mixed_groups": mixed(real)}
 
 
 def reflector_on_real(rows: list[dict], eta: float) -> dict:

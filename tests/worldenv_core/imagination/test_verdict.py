@@ -78,6 +78,20 @@ def test_verdict_metrics_count_hacks_misses_and_timing():
     assert verdict_metrics([], 0.5) == {"rollouts": 0}
 
 
+
+def test_mixed_groups_count_the_contexts_whose_rollouts_disagree_imagined_and_real():
+    """LOOP's learning signal: groups (rollouts of one context) whose verdicts are not all the same."""
+    rows = [_row([0, 0.9], first=8), _row([0, 0.1], first=8),  # context 0: imagination splits, reality agrees
+            _row([0, 0.1], first=None), _row([0, 0.2], first=4),  # context 1: imagination agrees, reality splits
+            _row([0, 0.1], first=None), _row([0, 0.1], first=None)]  # context 2: both agree
+    for i, r in enumerate(rows):
+        r["context"] = i // 2
+    m = verdict_metrics(rows, eta=0.5)
+    assert m["imagined_mixed_groups"] == pytest.approx(1 / 3) and m["real_mixed_groups"] == pytest.approx(1 / 3)
+    for i, r in enumerate(rows):
+        r["context"] = i  # one rollout per context: no group to disagree
+    assert "real_mixed_groups" not in verdict_metrics(rows, eta=0.5)
+
 def test_the_reflector_terminating_real_replays_sees_a_success_the_horizon_no_longer_shows():
     # the open-loop actions pass through success at step 10 and go on: the last real frame shows
     # no success, the one after the second chunk did; imagination never stopped
