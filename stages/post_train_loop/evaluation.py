@@ -130,7 +130,7 @@ def section(ctx: ReportContext, limit: int = 6) -> list[str]:
         curve = ", ".join(f"{k}: {100 * v:.0f} %" for k, v in sorted(r.metrics.get("real_success", {}).items(),
                                                                      key=lambda kv: int(kv[0]))) or "not run"
         real = r.tags.get("env") == "real"  # the reference: no world model, the oracle as reward
-        rows.append([r.tags.get("env", "imagined"), r.tags.get("eta"), r.tags.get("n_rollouts"), r.metrics.get("iterations"),
+        rows.append([env_label(r), r.tags.get("eta"), r.tags.get("n_rollouts"), r.metrics.get("iterations"),
                      "none" if real else ctx.input_tags(r, "train_worldsim").get("data", "?"),
                      "oracle" if real else ctx.input_tags(r, "train_reflector").get("data", "?"),
                      _span(h, "mean_reward"), _span(h, "reflector_success_rate"), _span(h, "episode_length"),
@@ -163,6 +163,12 @@ def section(ctx: ReportContext, limit: int = 6) -> list[str]:
     return titled("Post-training (LOOP in imagination)", lines)
 
 
+def env_label(run: StageRecord) -> str:
+    """The run's environment, and where its rollouts start when not at the episodes' first frames."""
+    mid = (run.config.get("rl") or {}).get("mid_episode_frames")
+    return run.tags.get("env", "imagined") + (f", {mid} mid-episode frames" if mid else "")
+
+
 def real_episodes_used(ctx: ReportContext, run: StageRecord) -> tuple[int, int]:
     """(real episodes of the collections the run used, real episodes per iteration of its own)."""
     collected = sum(ctx.by_id[i].metrics.get("real_episodes") or 0 for i in run.inputs
@@ -179,7 +185,7 @@ def plot_routes(ctx: ReportContext, runs: list[StageRecord], path: Path) -> Path
     for r in runs:
         curve = sorted((int(k), v) for k, v in r.metrics["real_success"].items())
         collected, per_it = real_episodes_used(ctx, r)
-        label = f"{r.tags.get('env', 'imagined')} eta {r.tags.get('eta')} N {r.tags.get('n_rollouts')}"
+        label = f"{env_label(r)} eta {r.tags.get('eta')} N {r.tags.get('n_rollouts')}"
         if r.tags.get("env", "imagined") == "imagined" and r.config.get("reflector_from"):  # routes differ by their judge
             label += f", {Path(str(r.config['reflector_from'])).name}"
         style = "-o" if r.tags.get("env") == "real" else "-s"
