@@ -187,7 +187,10 @@ def plot_routes(ctx: ReportContext, runs: list[StageRecord], path: Path) -> Path
         collected, per_it = real_episodes_used(ctx, r)
         label = f"{env_label(r)} eta {r.tags.get('eta')} N {r.tags.get('n_rollouts')}"
         if r.tags.get("env", "imagined") == "imagined" and r.config.get("reflector_from"):  # routes differ by their judge
-            label += f", {Path(str(r.config['reflector_from'])).name}"
+            judge = Path(str(r.config["reflector_from"]))  # a released folder by its name, a work dir by its run
+            label += f", {judge.name if judge.parent.parent.name == 'checkpoints' else short_run(str(judge))}"
+        if not (r.config.get("rl") or {}).get("filter_groups", True):
+            label += ", groups unfiltered"
         style = "-o" if r.tags.get("env") == "real" else "-s"
         axes[0].plot([i for i, _ in curve], [100 * v for _, v in curve], style, label=label, ms=3)
         axes[1].plot([collected + per_it * i for i, _ in curve], [100 * v for _, v in curve], style, label=label, ms=3)
