@@ -89,6 +89,40 @@ def _launch(ranks: int, exp: Path, *overrides: str, stage: str = "train_policy",
                             cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, **popen)
 
 
+def _descendants(pid: int) -> list[int]:
+    """Every live process below `pid` (read from /proc)."""
+    children: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    out, todo = [], [pid]
+    while todo:
+        kids = children.get(todo.pop(), [])
+        out += kids
+        todo += kids
+    return out
+
+
+def _wait_for_unlock(folder: Path, timeout: float = 60) -> None:
+    """Until no process holds a work-dir lock under `folder` (a killed rank's goes when it is gone)."""
+    import fcntl
+
+    deadline = time.time() + timeout
+    for lock in folder.glob("*/.lock"):
+        with open(lock) as f:
+            while True:
+                try:
+                    fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    fcntl.flock(f, fcntl.LOCK_UN)
+                    break
+                except BlockingIOError:
+                    assert time.time() < deadline, f"{lock} still held {timeout} s after the kill"
+                    time.sleep(0.05)
+
+
 def _finish(proc: subprocess.Popen) -> None:
     _, err = proc.communicate(timeout=600)
     assert proc.returncode == 0, err[-3000:]
@@ -135,8 +169,13 @@ def test_two_gloo_ranks_train_like_one_process_and_a_killed_launch_resumes(_tiny
             break
         time.sleep(0.05)
     assert proc.poll() is None, "the run ended before it could be killed"
-    os.killpg(proc.pid, signal.SIGKILL)  # torchrun and both ranks
+    for pid in [proc.pid, *_descendants(proc.pid)]:  # torchrun and both ranks (which it starts in sessions of their own)
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
     proc.wait()
+    _wait_for_unlock(exps["killed"] / "train_policy")  # the ranks die a moment after torchrun: their lock goes with them
     assert Manifest(exps["killed"]).find("train_policy") == [], "a killed launch records nothing"
     _finish(_launch(1, exps["killed"]))  # resumed at another world size
     assert _difference(two, _weights(exps["killed"])) < 0.01
