@@ -26,34 +26,28 @@ from worldenv_core.training import Phase, per_step, step_seed
 Collect = Callable[[torch.nn.Module, list[int], list[torch.Generator]], RolloutBatch]
 
 
-def start_frames(ep, n_mid: int) -> list[int]:
-    """Where in a collected episode LOOP starts rollouts: its first frame (the paper), or with
-    `rl.mid_episode_frames` = n_mid > 0, n_mid frames spread over its part before the first success."""
-    return mid_episode_frames(ep.success, ep.length, n_mid) if n_mid else [0]
+def episode_starts(paths: list[Path], cameras: list[str], mid_frames: int):
+    """(episode, where it starts in the real simulator) for each start frame of each collected
+    episode: its first frame (the paper), or with `rl.mid_episode_frames` = mid_frames > 0, that many
+    frames spread over its part before the first success."""
+    for p in paths:
+        ep = read_episode(p, cameras=cameras)
+        for f in mid_episode_frames(ep.success, ep.length, mid_frames) if mid_frames else [0]:
+            yield ep, RealStart(task_id=ep.meta.task_id, episode=str(p), frame=f)
 
 
 def contexts_from_episodes(paths: list[Path], camera: str, mid_frames: int = 0) -> tuple[list[Context], list[RealStart]]:
     """LOOP's contexts (frame, proprio and instruction at each start frame of each collected
     episode) and where each starts in the real simulator (the paired replays at evaluations)."""
-    contexts, starts = [], []
-    for p in paths:
-        ep = read_episode(p, cameras=[camera])
-        for f in start_frames(ep, mid_frames):
-            contexts.append(Context.from_episode(ep, camera, f))
-            starts.append(RealStart(task_id=ep.meta.task_id, episode=str(p), frame=f))
-    return contexts, starts
+    pairs = [(Context.from_episode(ep, camera, st.frame), st) for ep, st in episode_starts(paths, [camera], mid_frames)]
+    return [c for c, _ in pairs], [st for _, st in pairs]
 
 
 def real_starts(paths: list[Path], mid_frames: int = 0) -> tuple[list[RealStart], list[str]]:
     """The same contexts in the real simulator (`env=real`): each start (its episode's scene rebuilt
     from its seed, its actions replayed up to the start frame), and its instruction."""
-    starts, instructions = [], []
-    for p in paths:
-        ep = read_episode(p, cameras=[])
-        for f in start_frames(ep, mid_frames):
-            starts.append(RealStart(task_id=ep.meta.task_id, episode=str(p), frame=f))
-            instructions.append(ep.meta.instruction)
-    return starts, instructions
+    pairs = [(st, ep.meta.instruction) for ep, st in episode_starts(paths, [], mid_frames)]
+    return [st for st, _ in pairs], [i for _, i in pairs]
 
 
 def imagined_collector(env, contexts: list[Context], n_rollouts: int, encode) -> Collect:

@@ -78,7 +78,6 @@ def test_verdict_metrics_count_hacks_misses_and_timing():
     assert verdict_metrics([], 0.5) == {"rollouts": 0}
 
 
-
 def test_mixed_groups_count_the_contexts_whose_rollouts_disagree_imagined_and_real():
     """LOOP's learning signal: groups (rollouts of one context) whose verdicts are not all the same."""
     rows = [_row([0, 0.9], first=8), _row([0, 0.1], first=8),  # context 0: imagination splits, reality agrees
@@ -91,6 +90,7 @@ def test_mixed_groups_count_the_contexts_whose_rollouts_disagree_imagined_and_re
     for i, r in enumerate(rows):
         r["context"] = i  # one rollout per context: no group to disagree
     assert "real_mixed_groups" not in verdict_metrics(rows, eta=0.5)
+
 
 def test_the_reflector_terminating_real_replays_sees_a_success_the_horizon_no_longer_shows():
     # the open-loop actions pass through success at step 10 and go on: the last real frame shows
