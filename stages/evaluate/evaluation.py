@@ -80,8 +80,8 @@ def record_mode(stage, mode: str, rows: list[dict], videos: dict, setting: dict,
 
 def own_suite_evaluations(ctx: ReportContext, **tags) -> list[StageRecord]:
     """The task's evaluations on its own suite (those on another suite carry an `eval_suite` tag
-    and have their own table)."""
-    return [r for r in ctx.find("evaluate", **tags) if "eval_suite" not in r.tags]
+    and have their own table; those through a world model's view a `view` tag: diagnostics)."""
+    return [r for r in ctx.find("evaluate", **tags) if "eval_suite" not in r.tags and "view" not in r.tags]
 
 
 def success_table(ctx: ReportContext) -> tuple[list[str], dict]:

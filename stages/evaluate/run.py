@@ -15,6 +15,7 @@ from stages.evaluate.evaluation import record_mode
 from stages.report import write_report
 from worldenv_core.envs.collection import PolicyEvalJob, evaluate_policy_task
 from worldenv_core.envs.tasks import check_suite, num_tasks, resolve_task_ids, suite_max_steps
+from worldenv_core.imagination.view import PARTS as VIEW_PARTS
 from worldenv_core.manifest import StageRun
 from worldenv_core.models.checkpoint import read_config
 from worldenv_core.rl.termination import check_eta, reflector_eta
@@ -47,6 +48,8 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(str(e)) from None
     if cfg.eval_suite is not None:
         target_suite(cfg)
+    if not cfg.view_parts or set(cfg.view_parts) - set(VIEW_PARTS):
+        raise ConfigError(f"view_parts must be some of {list(VIEW_PARTS)}, got {list(cfg.view_parts)}")
 
 
 def target_suite(cfg: DictConfig) -> tuple[str, int]:
@@ -89,21 +92,26 @@ def run(cfg: DictConfig) -> dict:
     suite, max_steps = target_suite(cfg)
     # Only a cross-suite evaluation carries the tag, so the report keeps it apart from the task's own.
     suite_tag = {"eval_suite": suite} if cfg.eval_suite is not None else {}
+    # so is one through a world model's eyes (a diagnostic of imagination, not a benchmark result)
+    view_tag = {"view": "+".join(cfg.view_parts)} if cfg.view_through is not None else {}
     summaries = {}
     with ExitStack() as records:  # one manifest record per mode, all timed over the shared rollouts
         stages = {m: records.enter_context(StageRun(manifest, "evaluate", {
-            "task": task.name, "scale": cfg.scale.name, "termination": m, "policy": policy_tag, **suite_tag},
+            "task": task.name, "scale": cfg.scale.name, "termination": m, "policy": policy_tag, **suite_tag, **view_tag},
             resolved(cfg))) for m in modes}
         policy_path = [resolve_policy(cfg, s) for s in stages.values()][0]
         reflector_path = ([resolve_reflector(cfg, s) for s in stages.values()][0]
                           if cfg.termination in ("reflector", "all") else None)
         eta = reflector_eta(reflector_path, cfg.eta) if reflector_path else None
+        view = ([resolve_checkpoint(s, cfg.view_through, "train_worldsim", task.name, cfg.scale.name)
+                 for s in stages.values()][0] if cfg.view_through is not None else None)
         inits = list(range(cfg.init_states))
         contract = task_contract(cfg).on_suite(suite, max_steps)
         jobs = [PolicyEvalJob(policy_path=policy_path, contract=contract, task_id=t, init_ids=tuple(inits[i:i + JOB_SIZE]),
                               termination=cfg.termination,
                               video_ids=tuple(inits[:cfg.videos_per_task]), reflector_path=reflector_path,
-                              eta=eta)
+                              eta=eta, view_through=view,
+                              view_parts=tuple(cfg.view_parts))
                 for t in resolve_task_ids(task.suite, task.task_ids) for i in range(0, len(inits), JOB_SIZE)]
         rows, videos = [], {}
         for out in run_jobs(evaluate_policy_task, jobs, workers=cfg.workers, launcher=cfg.launcher,
@@ -119,6 +127,8 @@ def run(cfg: DictConfig) -> dict:
                                            "max_steps": max_steps}, reflector_path, eta, out_dir)
             # termination=all: the modes share one rollout per episode, counted once (on the first mode)
             stage.metrics["real_episodes"] = summaries[mode]["episodes"] if mode == modes[0] else 0
+            if view is not None:
+                stage.metrics["view_through"] = view
     report = write_report(manifest.root, task.name)  # the experiment's report, now with this evaluation
     log.info("experiment report: %s", report)
     return summaries if cfg.termination == "all" else summaries[cfg.termination]

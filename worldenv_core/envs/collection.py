@@ -173,6 +173,9 @@ class PolicyEvalJob:
     video_ids: tuple[int, ...] = ()
     reflector_path: str | None = None
     eta: float | None = None  # the reflector's threshold (termination reflector / all)
+    view_through: str | None = None  # a world model checkpoint: the policy sees the real frames as it renders
+    #                                  them (`imagination.view`); None: as the simulator renders them
+    view_parts: tuple[str, ...] = ("frames", "proprio")  # what of the episode it sees so
 
 
 _REFLECTORS: dict = {}
@@ -198,11 +201,17 @@ def evaluate_policy_task(job: PolicyEvalJob) -> dict:
     c = job.contract
     env = cached_env(c.suite, job.task_id, c.cameras, c.image_size, render=True)
     runner = cached_runner(job.policy_path, False, 1.0, c)
+    if job.view_through is not None:
+        from worldenv_core.imagination.view import world_model_view
+
+        runner = world_model_view(runner, job.view_through, job.task_id, c, job.view_parts)
     watch = job.termination == "all"
     reflector = cached_reflector(job.reflector_path, c) if job.termination in ("reflector", "all") else None
     rows, videos = [], {}
     for i in job.init_ids:
         t0 = time.perf_counter()
+        if job.view_through is not None:
+            runner.new_episode()
         stop = ReflectorStop(reflector, job.eta, env.instruction, runner.encoder, watch=watch) if reflector else None
         traj = policy_episode(env, runner, i, 0, c.max_steps, stop_on_success=job.termination == "oracle",
                               stop_when=stop)

@@ -121,6 +121,21 @@ def test_evaluate_the_post_trained_policy_by_name(trained):
     assert len(gifs) == 1 and f"(videos/{gifs[0].name})" in report  # the episode's GIF, beside the report
 
 
+def test_evaluate_through_the_world_models_view_is_a_diagnostic_apart(trained):
+    from stages.evaluate.evaluation import own_suite_evaluations
+    from stages.evaluate.run import run as evaluate
+    from worldenv_core.report import ReportContext
+
+    exp, _ = trained
+    worldsim = Manifest(exp).latest("train_worldsim", task="tiny")
+    out = evaluate(cfg("evaluate", exp, "policy_from=sft", "termination=oracle", "init_states=1", "workers=1",
+                       "progress=false", f"view_through={worldsim.id}"))
+    rec = Manifest(exp).latest("evaluate", task="tiny", view="frames+proprio")
+    assert rec.metrics["episodes"] == out["episodes"] == 1
+    assert Path(rec.metrics["view_through"]) == (Path(exp) / worldsim.files("checkpoint")[0].path).parent.resolve()
+    assert rec.id not in {r.id for r in own_suite_evaluations(ReportContext(Manifest(exp), "tiny", Path(exp) / "report"))}  # not a benchmark row
+
+
 def test_reflector_also_trains_on_the_world_simulators_replays_of_its_episodes(trained):
     """train.with_imagined: each training episode once more as the world simulator imagines it,
     with the real episode's labels; the world model becomes an input and names the run."""
