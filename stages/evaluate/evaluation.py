@@ -196,6 +196,46 @@ def other_suites_table(ctx: ReportContext) -> list[str]:
                           rows) if rows else []
 
 
+def _checkpoint_name(path: str) -> str:
+    """A released checkpoint by its name under checkpoints/ (<suite>/<name>), a run's by its work dir."""
+    parts = Path(path).parts
+    return "/".join(parts[-2:]) if "checkpoints" in parts[:-2] else short_run(path)
+
+
+def view_table(ctx: ReportContext) -> list[str]:
+    """`evaluate view_through=...`: each policy's real success when shown the episode as imagination
+    would show it (world-model frames, kinematic proprio), paired with its plain evaluation on the
+    same episodes: what imagination's view alone costs the policy, before any dynamics."""
+    plain = {}
+    for r in own_suite_evaluations(ctx):  # newest plain evaluation per (checkpoint, termination)
+        summary = ctx.report_json(r, "results.json")
+        if summary:
+            plain[(summary["policy"], summary["termination"])] = r
+    latest = {}
+    for r in ctx.find("evaluate"):
+        if "view" in r.tags and "eval_suite" not in r.tags:
+            latest[(r.config.get("policy_from"), r.tags["view"], r.tags["termination"])] = r
+    rows = []
+    for (_, parts, term), r in latest.items():
+        summary, seen = ctx.report_json(r, "results.json"), ctx.report_json(r, "episodes.json")
+        base = plain.get((summary["policy"], term)) if summary else None
+        if not base or not seen:
+            continue
+        a = {(e["task_id"], e["init_state"]): e["success"] for e in ctx.report_json(base, "episodes.json")}
+        b = {(e["task_id"], e["init_state"]): e["success"] for e in seen}
+        t = paired_success_test(a, b)
+        if not t["episodes"]:
+            continue
+        shared = [k for k in b if k in a]
+        rows.append([f"`{_checkpoint_name(summary['policy'])}`", parts, f"`{_checkpoint_name(r.metrics['view_through'])}`",
+                     term, t["episodes"], f"{100 * np.mean([a[k] for k in shared]):.1f} %",
+                     f"{100 * np.mean([b[k] for k in shared]):.1f} %", f"{t['only_a']} / {t['only_b']}",
+                     f"{t['p_value']:.3f}"])
+    return markdown_table(["policy", "shown as imagined", "world model", "termination", "paired episodes", "plain view",
+                           "imagination's view", "solved only plain / only imagined view", "McNemar p"],
+                          rows) if rows else []
+
+
 def section(ctx: ReportContext) -> list[str]:
     """evaluate's part of the report: success, other suites, ablations."""
     table, cells = success_table(ctx)
@@ -207,6 +247,7 @@ def section(ctx: ReportContext) -> list[str]:
         table += ["", "Episodes (first init states of each task; GIFs):", "", *videos]
     return (titled("Success in the real simulator", table)
             + titled(f"Evaluated on other suites (trained on {ctx.task}'s)", other_suites_table(ctx))
+            + titled("Shown the real episode as imagination would show it (`evaluate view_through=`)", view_table(ctx))
             + titled("Ablations (the paper's Table 2, as far as run)", ablation_table(ctx)))
 
 

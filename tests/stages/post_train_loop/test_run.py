@@ -128,12 +128,18 @@ def test_evaluate_through_the_world_models_view_is_a_diagnostic_apart(trained):
 
     exp, _ = trained
     worldsim = Manifest(exp).latest("train_worldsim", task="tiny")
-    out = evaluate(cfg("evaluate", exp, "policy_from=sft", "termination=oracle", "init_states=1", "workers=1",
-                       "progress=false", f"view_through={worldsim.id}"))
+    common = ["policy_from=sft", "termination=oracle", "init_states=1", "workers=1", "progress=false"]
+    evaluate(cfg("evaluate", exp, *common))  # the plain view it is paired with
+    out = evaluate(cfg("evaluate", exp, *common, f"view_through={worldsim.id}"))
     rec = Manifest(exp).latest("evaluate", task="tiny", view="frames+proprio")
     assert rec.metrics["episodes"] == out["episodes"] == 1
     assert Path(rec.metrics["view_through"]) == (Path(exp) / worldsim.files("checkpoint")[0].path).parent.resolve()
-    assert rec.id not in {r.id for r in own_suite_evaluations(ReportContext(Manifest(exp), "tiny", Path(exp) / "report"))}  # not a benchmark row
+    assert rec.id not in {r.id for r in own_suite_evaluations(ReportContext(Manifest(exp), "tiny", Path(exp) / "report"))}
+    report = (Path(exp) / "report" / "report.md").read_text()  # a table of its own, paired with the plain view
+    section = report.split("## Shown the real episode as imagination would show it")[1].split("\n## ")[0]
+    assert "| frames+proprio |" in section and "| oracle | 1 |" in section
+    with pytest.raises(ConfigError, match="view_parts"):
+        evaluate(cfg("evaluate", exp, *common, f"view_through={worldsim.id}", "view_parts=[depth]"))
 
 
 def test_reflector_also_trains_on_the_world_simulators_replays_of_its_episodes(trained):

@@ -99,9 +99,45 @@ def test_next_state_model_tracks_the_simulator(expert_traj):
 
     aim = NextStateModel()  # where the controller aims
     fitted = NextStateModel.fit([Ep])
-    assert 0 < fitted.g_pos < 1.5 and 0 < fitted.g_rot < 1.5 and fitted.g_grip > 0
+    assert 0 < fitted.g_pos < 1.5 and 0 < fitted.g_rot < 1.5 and 0 < fitted.grip_lag < 1
+    assert fitted.grip_closed < fitted.grip_open
     for h in (1, 8):
         e_aim, e_fit = state_errors(aim, [Ep], h), state_errors(fitted, [Ep], h)
         assert e_fit["pos_mm_median"] < e_aim["pos_mm_median"]
     one = state_errors(fitted, [Ep], 1)
     assert one["pos_mm_median"] < 3.0 and one["rot_deg_median"] < 2.0
+    # the lagging gripper against the first model's constant rate fitted on the same episode
+    constant = NextStateModel(**{k: v for k, v in fitted.to_dict().items() if not k.startswith("grip_") and k != "g_grip"},
+                              g_grip=_constant_rate(Ep))
+    for h in (8, 32):
+        assert state_errors(fitted, [Ep], h)["grip_mae"] < state_errors(constant, [Ep], h)["grip_mae"]
+
+
+def _constant_rate(ep) -> float:
+    """The first model's gripper rate: the median opening change per unit command over moving steps."""
+    d, a = np.diff(ep.proprio[:, 6]), -np.clip(ep.actions[:, 6], -1, 1)
+    moving = np.abs(d) > 1e-3
+    return float(np.median(d[moving] / a[moving]))
+
+
+def test_gripper_lags_toward_its_levels_and_the_first_model_still_loads():
+    lag = NextStateModel(grip_lag=0.2, grip_momentum=0.3, grip_closed=0.01, grip_open=0.99)  # settles without overshoot
+    state = torch.tensor([[0.0, 0.0, 1.0, 3.14, 0.0, 0.0, 0.99]], dtype=torch.float64)
+    close = torch.zeros(1, 30, 7, dtype=torch.float64)
+    close[..., 6] = 1.0
+    states, carry = lag.rollout(state, close)
+    grip = states[0, :, 6].numpy()
+    assert np.all(np.diff(grip) <= 1e-12) and grip[0] > 0.7 and abs(grip[-1] - 0.01) < 0.02 and grip.min() >= 0.01
+    assert len(carry) == 3
+    # open, close, open again: the fit finds the levels it settles at and the lag between them
+    actions = torch.zeros(1, 150, 7, dtype=torch.float64)
+    actions[0, :, 6] = torch.tensor([-1.0] * 50 + [1.0] * 50 + [-1.0] * 50)
+    start = state.clone()
+    start[0, 6] = 0.5
+    ep = type("Ep", (), {"proprio": torch.cat([start, lag.rollout(start, actions)[0][0]]).numpy(),
+                         "actions": actions[0].numpy()})
+    fitted = NextStateModel.fit([ep])
+    assert abs(fitted.grip_lag - 0.2) < 0.01 and abs(fitted.grip_momentum - 0.3) < 0.01
+    assert abs(fitted.grip_closed - 0.01) < 1e-3 and abs(fitted.grip_open - 0.99) < 1e-3
+    first = NextStateModel(g_grip=0.1)  # saved before grip_lag: a constant rate, clipped to [0, 1]
+    np.testing.assert_allclose(first.rollout(state, close)[0][0, :3, 6].numpy(), [0.89, 0.79, 0.69])
