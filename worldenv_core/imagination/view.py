@@ -6,7 +6,8 @@ where the picture did not change), and its proprioception is the kinematic model
 from the context's state through the actions taken (no contact, no real state to correct it).
 `WorldModelView` gives a policy in the *real* simulator either or both of these in place of the
 real ones: `frames`, each true frame encoded and rendered by the world model as if imagined;
-`proprio`, the kinematic model's state rolled forward through the executed actions. Real success
+`proprio`, the kinematic model's state rolled forward through the executed actions (or part of it:
+`pose`, the end effector's position and rotation, `gripper`, its opening). Real success
 under each part against the plain one says which part of imagination costs the policy its skill,
 before anything is predicted: the closed-loop gap left over is the world model's dynamics.
 """
@@ -19,7 +20,8 @@ import torch
 from worldenv_core.imagination.simulator import ImaginedSimulator
 
 
-PARTS = ("frames", "proprio")
+PARTS = ("frames", "proprio", "pose", "gripper")  # proprio = pose + gripper
+PROPRIO_DIMS = {"proprio": slice(0, 7), "pose": slice(0, 6), "gripper": slice(6, 7)}
 
 
 class WorldModelView:
@@ -27,7 +29,7 @@ class WorldModelView:
     `parts` of the real episode as imagination would show them. Call `new_episode()` before each
     episode: its first frame and state are the context, shown as they are (as in imagination)."""
 
-    def __init__(self, runner, sim: ImaginedSimulator, camera: str, parts=PARTS):
+    def __init__(self, runner, sim: ImaginedSimulator, camera: str, parts=("frames", "proprio")):
         if camera not in runner.cameras:
             raise ValueError(f"the world model imagines camera {camera!r}, which the policy does not see "
                              f"({runner.cameras})")
@@ -66,10 +68,13 @@ class WorldModelView:
             x = torch.as_tensor(image).permute(2, 0, 1)[None, None].to(self.sim.device)
             rendered = self.sim.render(self.sim.model.encode(x))[0, 0]
             image = (rendered * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
-        if "proprio" in self.parts:  # through the chunk just executed, as ImaginedSimulator.step integrates it
+        dims = [PROPRIO_DIMS[p] for p in self.parts if p in PROPRIO_DIMS]
+        if dims:  # through the chunk just executed, as ImaginedSimulator.step integrates it
             states, self.carry = self.sim.kinematics.rollout(self.state, self.actions, self.carry)
             self.state = states[:, -1]
-            proprio = self.state[0].float().cpu().numpy()
+            proprio = np.array(proprio, dtype=np.float32, copy=True)
+            for d in dims:
+                proprio[d] = self.state[0, d].float().cpu().numpy()
         return image, proprio
 
     def act_chunk(self, images: dict, proprio, instruction: str):
@@ -79,7 +84,8 @@ class WorldModelView:
         return out
 
 
-def world_model_view(runner, worldsim_path: str, task_id: int, contract=None, parts=PARTS) -> WorldModelView:
+def world_model_view(runner, worldsim_path: str, task_id: int, contract=None,
+                     parts=("frames", "proprio")) -> WorldModelView:
     """`runner` shown `parts` of the real episode as the world model at `worldsim_path` imagines them."""
     from worldenv_core.models.checkpoint import read_config
 

@@ -160,3 +160,26 @@ def test_latent_pack_trains_open_loop_off_the_episodes_and_refuses_another_autoe
     save_file(state, str(other / "model.safetensors"))
     with pytest.raises(CheckpointError, match="another autoencoder"):
         from_pack.main([str(pack), str(other), "--work", str(tmp_path / "w2"), "--steps", "1"])
+
+
+def test_refit_kinematics_keeps_the_weights_and_scores_the_fit_on_held_out_episodes(demo_experiment, contract,
+                                                                                   tmp_path):
+    from stages.train_worldsim import refit_kinematics
+    from worldenv_core.kinematics.next_state import NextStateModel
+
+    exp = demo_experiment
+    train_worldsim(cfg(exp, "expert_only=true"))  # (resumes the finished run of the tests above)
+    m = Manifest(exp)
+    base = next(p for p in m.resolve(m.latest("train_worldsim", task="tiny", data="expert"))
+                if p.name == "model.safetensors").parent
+    episodes = str(exp / "data" / "*" / "*" / "*" / "*.mcap")
+    out = refit_kinematics.main([str(base), episodes, "--out", str(tmp_path / "refit")])
+    assert (tmp_path / "refit" / "model.safetensors").read_bytes() == (base / "model.safetensors").read_bytes()
+    _, meta = load_checkpoint(tmp_path / "refit", "worldsim", contract())
+    _, base_meta = load_checkpoint(base, "worldsim", contract())
+    assert meta["kinematics"] == out["kinematics"] and NextStateModel(**meta["kinematics"]).grip_lag is not None
+    assert meta["held_out"] == base_meta["held_out"] and meta["kinematics_refit"]["episodes"] == 1  # the other is held out
+    assert [r["horizon"] for r in out["errors"]["after"]] == list(refit_kinematics.HORIZONS)
+    with pytest.raises(ValueError, match="held-out"):  # only the held-out episode: nothing to fit on
+        held = [p for p in (exp / "data").glob("*/*/*/*.mcap") if "/".join(p.parts[-3:]) in base_meta["held_out"]]
+        refit_kinematics.main([str(base), *map(str, held), "--out", str(tmp_path / "none")])

@@ -89,3 +89,26 @@ def test_unknown_view_parts_are_refused():
     sim = ImaginedSimulator(WorldSimulator(**TINY), NextStateModel(), camera(2.0))
     with pytest.raises(ValueError, match="view parts"):
         WorldModelView(Recorder(), sim, "agentview", parts=("depth",))
+
+
+def test_pose_or_gripper_alone_keeps_the_rest_of_the_real_state():
+    torch.manual_seed(0)
+    sim = ImaginedSimulator(WorldSimulator(**TINY), NextStateModel(), camera(2.0))
+
+    class Acting(Recorder):
+        def act_chunk(self, images, proprio, instruction):
+            self.seen.append(np.asarray(proprio))
+            return np.full((4, 7), 0.5), np.zeros((4, 7)), np.zeros((4, 7))
+
+    start = np.array([0.0, 0.0, 1.0, 3.14, 0.0, 0.0, 1.0])
+    both = {}
+    for parts in (("proprio",), ("pose",), ("gripper",)):
+        view = WorldModelView(Acting(), sim, "agentview", parts=parts)
+        for _ in range(2):
+            view.act_chunk({"agentview": frames(1)[0]}, start, "task")
+        both[parts[0]] = view.runner.seen[1]
+    np.testing.assert_allclose(both["pose"][:6], both["proprio"][:6])
+    np.testing.assert_allclose(both["pose"][6], start[6])
+    np.testing.assert_allclose(both["gripper"][6], both["proprio"][6])
+    np.testing.assert_allclose(both["gripper"][:6], start[:6], atol=1e-6)
+    assert both["proprio"][6] != start[6]
