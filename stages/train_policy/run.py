@@ -13,7 +13,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
-from stages.train_policy.training import action_step, build_policy, scale_step
+from stages.train_policy.training import ImaginedProprio, action_step, build_policy, scale_step
 from worldenv_core.data.dataset import EpisodeDataset
 from worldenv_core.data.mcap_io import read_info
 from worldenv_core.manifest import StageRun
@@ -31,6 +31,9 @@ def validate(cfg: DictConfig) -> None:
                 "train.log_every", "train.checkpoint_every"):
         positive_int(cfg, key)
     trainer_options(cfg, "train.batch_size", "scale_head.batch_size")
+    if not 0.0 <= cfg.train.imagined_proprio <= 1.0:
+        raise ConfigError(f"train.imagined_proprio is a fraction of each batch in [0, 1], got {cfg.train.imagined_proprio}")
+    positive_int(cfg, "train.imagined_proprio_steps")
 
 
 def select_demos(paths: list[Path], per_task: int, task_ids: list[int] | None) -> list[Path]:
@@ -57,7 +60,10 @@ def run(cfg: DictConfig) -> dict:
         demos = manifest.get(cfg.demos) if cfg.demos else manifest.latest("collect", task=contract.name,
                                                                             scale=cfg.scale.name, source="expert")
         paths = select_demos(stage.use(demos, kind="episodes"), cfg.demos_per_task, list(contract.task_ids or []) or None)
-        work = work_dir(cfg.experiment_dir, "train_policy", config, stage.work_inputs())
+        key = config
+        if not cfg.train.imagined_proprio:  # added later: off keeps earlier work dirs
+            key = {**config, "train": {k: v for k, v in config["train"].items() if not k.startswith("imagined_proprio")}}
+        work = work_dir(cfg.experiment_dir, "train_policy", key, stage.work_inputs())
         stage.lock(work)  # one run at a time trains into a work dir
         data = EpisodeDataset(paths, cameras=list(contract.cameras), mode="chunk", chunk=contract.chunk,
                               future_frames=False)
@@ -69,13 +75,15 @@ def run(cfg: DictConfig) -> dict:
                           tracker=make_tracker(cfg.get("logger"), work, "train_policy", contract.name, config),
                           **trainer_options(cfg, "train.batch_size", "scale_head.batch_size"))
         encoder = InstructionEncoder()
+        imagined = (ImaginedProprio([data.get_episode(i) for i in range(data.num_episodes)], cfg.train.imagined_proprio,
+                                    cfg.train.imagined_proprio_steps, cfg.seed) if cfg.train.imagined_proprio else None)
         log.info("training on %d demos (%d chunks) for %d + %d steps on %s; work dir %s",
                  len(paths), len(data), cfg.train.steps, cfg.scale_head.steps, device, work)
         trainer.fit([
             Phase("action", cfg.train.steps, lambda s: batches(data, cfg.train.batch_size, cfg.seed, start_step=s),
-                  action_step(model, optimizers["action"], encoder, device, cfg.train.augment_shift)),
+                  action_step(model, optimizers["action"], encoder, device, cfg.train.augment_shift, imagined)),
             Phase("scale", cfg.scale_head.steps, lambda s: batches(data, cfg.scale_head.batch_size, cfg.seed + 1, start_step=s),
-                  scale_step(model, optimizers["scale"], encoder, device))])
+                  scale_step(model, optimizers["scale"], encoder, device, imagined))])
         final = trainer.save_final(work / "policy")
         trainer.finish(stage, final, f"train_policy {contract.name}")
         last = lambda key: next((h[key] for h in reversed(trainer.history) if key in h), None)  # noqa: E731

@@ -1,5 +1,11 @@
 """How the policy trains (paper eq. 6 and 8): phase 1 backbone and action head with L1 on mu,
-phase 2 the scale head alone with the Laplace NLL on frozen features (the Trainer's two Phases)."""
+phase 2 the scale head alone with the Laplace NLL on frozen features (the Trainer's two Phases).
+
+Optionally (`train.imagined_proprio`) part of each batch is shown the proprioception imagination
+would give it: the kinematic model's state, integrated through the demo's own actions from a frame
+up to `train.imagined_proprio_steps` earlier, which drifts from the real one as it does in a
+world model's rollout (no contact, no correction). The label stays the demo's action, so the policy
+learns to act from what it sees when its sense of its own state is off."""
 
 from __future__ import annotations
 
@@ -7,21 +13,61 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from worldenv_core.kinematics.next_state import NextStateModel
 from worldenv_core.models.laplace import laplace_nll
 from worldenv_core.training import optimize, random_shift
 
 
-def _batch_inputs(model, batch, encoder, device, shift: int = 0):
+class ImaginedProprio:
+    """Replaces a random `fraction` of a batch's proprio with the kinematic model's open-loop state,
+    integrated from 1 to `max_steps` frames back in the same episode (as far as it goes)."""
+
+    def __init__(self, episodes: list, fraction: float, max_steps: int, seed: int):
+        self.kinematics = NextStateModel.fit(episodes)
+        self.proprio = [torch.as_tensor(ep.proprio, dtype=torch.float64) for ep in episodes]
+        self.actions = [torch.as_tensor(ep.actions, dtype=torch.float64) for ep in episodes]
+        self.fraction, self.max_steps, self.seed = float(fraction), int(max_steps), int(seed)
+
+    def __call__(self, batch: dict) -> torch.Tensor:
+        proprio = batch["proprio"].clone()
+        episode, frame = batch["episode_index"].long(), batch["frame_index"].long()
+        # drawn from the batch itself, so a resumed run (same batches by step) draws the same
+        g = torch.Generator().manual_seed(self.seed * 1_000_003 + int((episode * 100_003 + frame).sum()))
+        draw = torch.rand(len(frame), generator=g) < self.fraction
+        picked = [i for i in range(len(frame)) if draw[i] and frame[i] > 0]
+        if not picked:
+            return proprio
+        back = [int(torch.randint(1, min(self.max_steps, int(frame[i])) + 1, (), generator=g)) for i in picked]
+        k = max(back)
+        starts = torch.stack([self.proprio[episode[i]][frame[i] - b] for i, b in zip(picked, back)])
+        actions = torch.zeros(len(picked), k, 7, dtype=torch.float64)  # right-aligned: each ends at its frame
+        for j, (i, b) in enumerate(zip(picked, back)):
+            actions[j, k - b:] = self.actions[episode[i]][frame[i] - b:frame[i]]
+        n = len(picked)
+        state = starts
+        carry = (torch.zeros(n, 3, dtype=torch.float64), torch.zeros(n, 3, dtype=torch.float64),
+                 torch.zeros(n, dtype=torch.float64))  # no motion at the start, as a context without its past
+        for step in range(k):  # an integration that has not started yet holds its start state
+            live = torch.tensor([step >= k - b for b in back])
+            nxt, moved = self.kinematics.step(state, actions[:, step], carry)
+            state = torch.where(live[:, None], nxt, state)
+            carry = tuple(torch.where(live.view(-1, *[1] * (m.dim() - 1)), m, c) for m, c in zip(moved, carry))
+        proprio[picked] = state.to(proprio.dtype)
+        return proprio
+
+
+def _batch_inputs(model, batch, encoder, device, shift: int = 0, imagined: ImaginedProprio | None = None):
     images = {c: batch["images"][c].to(device) for c in model.cameras}  # (B, 3, H, W) uint8
     if shift:
         images = {c: random_shift(v, shift) for c, v in images.items()}
-    return images, batch["proprio"].float().to(device), encoder(list(batch["instruction"])).to(device)
+    proprio = imagined(batch) if imagined is not None else batch["proprio"]
+    return images, proprio.float().to(device), encoder(list(batch["instruction"])).to(device)
 
 
-def action_step(model, optimizer, encoder, device, shift: int):
+def action_step(model, optimizer, encoder, device, shift: int, imagined: ImaginedProprio | None = None):
     """Phase 1: backbone and action head, L1 on mu over the chunk's valid steps (eq. 6)."""
     def step(batch) -> dict:
-        images, proprio, lang = _batch_inputs(model, batch, encoder, device, shift)
+        images, proprio, lang = _batch_inputs(model, batch, encoder, device, shift, imagined)
         mu, _ = model(images, proprio, lang)
         target = model.normalize_actions(batch["actions"].float().to(device))
         valid = (~batch["action_is_pad"]).to(device)[..., None].float()
@@ -31,10 +77,10 @@ def action_step(model, optimizer, encoder, device, shift: int):
     return step
 
 
-def scale_step(model, optimizer, encoder, device):
+def scale_step(model, optimizer, encoder, device, imagined: ImaginedProprio | None = None):
     """Phase 2: the scale head alone, Laplace NLL on frozen features and a fixed mu (eq. 8)."""
     def step(batch) -> dict:
-        images, proprio, lang = _batch_inputs(model, batch, encoder, device)
+        images, proprio, lang = _batch_inputs(model, batch, encoder, device, imagined=imagined)
         with torch.no_grad():  # features and mu stay fixed: only the scale head learns
             f = model.features(images, proprio, lang)
             mu = model.action_head(f).view(-1, model.chunk, model.action_dim)
