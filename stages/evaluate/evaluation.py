@@ -197,9 +197,11 @@ def other_suites_table(ctx: ReportContext) -> list[str]:
 
 
 def _checkpoint_name(path: str) -> str:
-    """A released checkpoint by its name under checkpoints/ (<suite>/<name>), a run's by its work dir."""
+    """A stage run's checkpoint by <stage>/<work dir>, any other folder (released under checkpoints/,
+    refitted, copied) by its parent and name."""
     parts = Path(path).parts
-    return "/".join(parts[-2:]) if "checkpoints" in parts[:-2] else short_run(path)
+    work = parts[-2] if len(parts) >= 2 else ""
+    return short_run(path) if len(work) == 16 and all(c in "0123456789abcdef" for c in work) else "/".join(parts[-2:])
 
 
 def view_table(ctx: ReportContext) -> list[str]:
@@ -214,9 +216,9 @@ def view_table(ctx: ReportContext) -> list[str]:
     latest = {}
     for r in ctx.find("evaluate"):
         if "view" in r.tags and "eval_suite" not in r.tags:
-            latest[(r.config.get("policy_from"), r.tags["view"], r.tags["termination"])] = r
+            latest[(r.config.get("policy_from"), r.metrics.get("view_through"), r.tags["view"], r.tags["termination"])] = r
     rows = []
-    for (_, parts, term), r in latest.items():
+    for (_, _, parts, term), r in latest.items():
         summary, seen = ctx.report_json(r, "results.json"), ctx.report_json(r, "episodes.json")
         base = plain.get((summary["policy"], term)) if summary else None
         if not base or not seen:
