@@ -15,7 +15,6 @@ pack made by another model). The model's held-out episodes are left out, as `ini
 from __future__ import annotations
 
 import argparse
-import glob
 import hashlib
 import json
 import os
@@ -110,7 +109,7 @@ def pack_chunks(latents, episodes, model, chunks_ahead: int) -> LatentChunks:
 
 
 def main(argv: list[str] | None = None) -> Path:
-    from worldenv_core.data.selection import episode_key, load_split
+    from worldenv_core.data.selection import episode_key, expand_episode_paths, load_split
     from worldenv_core.models.checkpoint import load_checkpoint
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -118,10 +117,7 @@ def main(argv: list[str] | None = None) -> Path:
     p.add_argument("episodes", nargs="+", help="episode files or glob patterns (its held-out ones are left out)")
     p.add_argument("--out", required=True, help="the pack file to write")
     args = p.parse_args(argv)
-    paths = sorted({Path(q) for pattern in args.episodes for q in (glob.glob(pattern) or [pattern])})
-    missing = [str(q) for q in paths if not q.is_file()]
-    if missing:
-        raise FileNotFoundError(f"episode files not found: {missing[:3]}")
+    paths = expand_episode_paths(args.episodes)
     model, meta = load_checkpoint(args.model, "worldsim")
     train, _, episodes, _ = load_split(paths, 0, meta["camera"], meta["held_out"])
     latents = [encode_episode_frames(model, ep.images[meta["camera"]]) for ep in episodes]

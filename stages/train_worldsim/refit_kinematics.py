@@ -14,7 +14,6 @@ open-loop state errors on the held-out episodes, and prints both.
 from __future__ import annotations
 
 import argparse
-import glob
 import json
 import shutil
 from pathlib import Path
@@ -59,15 +58,14 @@ def refit(model_dir: str | Path, paths: list[Path], out: str | Path) -> dict:
 
 
 def main(argv: list[str] | None = None) -> dict:
+    from worldenv_core.data.selection import expand_episode_paths
+
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("model", help="the world model checkpoint folder")
     p.add_argument("episodes", nargs="+", help="episode files or glob patterns (its held-out ones score the fit)")
     p.add_argument("--out", required=True, help="the checkpoint folder to write")
     args = p.parse_args(argv)
-    paths = sorted({Path(q) for pattern in args.episodes for q in (glob.glob(pattern) or [pattern])})
-    missing = [str(q) for q in paths if not q.is_file()]
-    if missing:
-        raise FileNotFoundError(f"episode files not found: {missing[:3]}")
+    paths = expand_episode_paths(args.episodes)
     out = refit(args.model, paths, args.out)
     print(f"{args.out}: kinematics refitted: {out['kinematics']}")
     for name, rows in out["errors"].items():

@@ -9,6 +9,8 @@ collected again.
 
 from __future__ import annotations
 
+import glob
+
 import logging
 import os
 import time
@@ -57,6 +59,16 @@ def holdout_split(paths: list[Path], every: int) -> tuple[list[Path], list[Path]
 def episode_key(path: str | Path) -> str:
     """A machine-independent name for a collected episode: <collection>/<task>/<file>."""
     return "/".join(Path(path).parts[-3:])
+
+
+def expand_episode_paths(patterns: Iterable[str]) -> list[Path]:
+    """Episode files named or matched by glob patterns, sorted and once each (the CLIs' argument);
+    a name that matches nothing and is no file is an error naming it."""
+    paths = sorted({Path(q) for pattern in patterns for q in (glob.glob(pattern) or [pattern])})
+    missing = [str(q) for q in paths if not q.is_file()]
+    if missing:
+        raise FileNotFoundError(f"episode files not found: {missing[:3]}")
+    return paths
 
 
 def load_split(paths: list[Path], holdout_every: int, camera: str,

@@ -173,9 +173,9 @@ class PolicyEvalJob:
     video_ids: tuple[int, ...] = ()
     reflector_path: str | None = None
     eta: float | None = None  # the reflector's threshold (termination reflector / all)
-    view_through: str | None = None  # a world model checkpoint: the policy sees the real frames as it renders
-    #                                  them (`imagination.view`); None: as the simulator renders them
-    view_parts: tuple[str, ...] = ("frames", "proprio")  # what of the episode it sees so
+    view_through: str | None = None  # a world model checkpoint: the policy is shown `view_parts` of the real
+    #                                  episode as that model would show them (`imagination.view`); None: as they are
+    view_parts: tuple[str, ...] = ("frames", "proprio")
 
 
 _REFLECTORS: dict = {}

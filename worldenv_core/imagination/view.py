@@ -59,13 +59,12 @@ class WorldModelView:
     def view(self, image: np.ndarray, proprio) -> tuple[np.ndarray, np.ndarray]:
         """The real frame ((H, W, 3) uint8) and state ((7,)) at a chunk boundary -> as imagination
         would show them."""
+        x = torch.as_tensor(image).permute(2, 0, 1)[None, None].to(self.sim.device)
         if self.fresh:  # the context: anchors the static detail and the kinematic state; shown as it is
-            x = torch.as_tensor(image).permute(2, 0, 1)[None, None].to(self.sim.device)
             self.sim.reset(x, torch.as_tensor(proprio, dtype=torch.float64)[None])
             self.state, self.carry, self.fresh = self.sim.proprio, None, False
             return image, proprio
         if "frames" in self.parts:
-            x = torch.as_tensor(image).permute(2, 0, 1)[None, None].to(self.sim.device)
             rendered = self.sim.render(self.sim.model.encode(x))[0, 0]
             image = (rendered * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
         dims = [PROPRIO_DIMS[p] for p in self.parts if p in PROPRIO_DIMS]

@@ -67,7 +67,7 @@ class NextStateModel:
         else:
             target = torch.where(action[:, 6] > 0, self.grip_closed, self.grip_open).to(state.dtype)
             dg = self.grip_lag * (target - state[:, 6])
-            if prev is not None and len(prev) > 2:
+            if prev is not None:
                 dg = dg + self.grip_momentum * prev[2]
             grip = (state[:, 6] + dg).clamp(self.grip_closed, self.grip_open)
         nxt = torch.cat([state[:, :3] + dp, matrix_to_axis_angle(rot), grip[:, None]], dim=1)
@@ -88,16 +88,16 @@ class NextStateModel:
     def fit(cls, episodes) -> NextStateModel:
         """Least-squares gains from recorded (proprio, actions) pairs, one regression per part.
         `episodes`: iterable of objects with `proprio` (T+1, 7) and `actions` (T, 7)."""
-        episodes = list(episodes)
+        episodes = [ep for ep in episodes if len(ep.actions) >= 2]
+        if not episodes:
+            raise ValueError("NextStateModel.fit needs at least one episode with 2 or more actions")
         xp, yp, xr, yr, xg, yg = [], [], [], [], [], []
-        levels = torch.cat([torch.as_tensor(ep.proprio[:, 6], dtype=torch.float64) for ep in episodes]) if episodes else None
+        levels = torch.cat([torch.as_tensor(ep.proprio[:, 6], dtype=torch.float64) for ep in episodes])
         # the levels the opening settles at (robust to a few outliers): fully closed and fully open
-        closed, opened = (float(torch.quantile(levels, q)) for q in (0.005, 0.995)) if levels is not None else (0.0, 1.0)
+        closed, opened = (float(torch.quantile(levels, q)) for q in (0.005, 0.995))
         for ep in episodes:
             s = torch.as_tensor(ep.proprio, dtype=torch.float64)
             a = torch.as_tensor(ep.actions, dtype=torch.float64).clamp(-1, 1)
-            if len(a) < 2:
-                continue
             dp, dr, dg = observed_carry(s[:-1], s[1:])  # world-frame deltas per step
             # regress delta_t on (commanded delta_t, delta_{t-1}) for t >= 1
             xp.append(torch.stack([OSC_POS_SCALE * a[1:, :3], dp[:-1]], -1).reshape(-1, 2))
@@ -107,8 +107,6 @@ class NextStateModel:
             target = torch.where(a[1:, 6] > 0, closed, opened)
             xg.append(torch.stack([target - s[1:-1, 6], dg[:-1]], -1))
             yg.append(dg[1:])
-        if not xp:
-            raise ValueError("NextStateModel.fit needs at least one episode with 2 or more actions")
         (g_pos, m_pos), (g_rot, m_rot) = (_lstsq(torch.cat(x), torch.cat(y)) for x, y in ((xp, yp), (xr, yr)))
         lag, momentum = _lstsq(torch.cat(xg).reshape(-1, 2), torch.cat(yg).reshape(-1))
         return cls(g_pos=g_pos, g_rot=g_rot, m_pos=m_pos, m_rot=m_rot, grip_lag=lag, grip_momentum=momentum,

@@ -23,6 +23,14 @@ class Recorder:
         return np.zeros((4, 7)), np.zeros((4, 7)), np.zeros((4, 7))
 
 
+class Acting(Recorder):
+    """A policy runner that moves (the same chunk every time) and keeps the proprio it was shown."""
+
+    def act_chunk(self, images, proprio, instruction):
+        self.seen.append(np.asarray(proprio))
+        return np.full((4, 7), 0.5), np.zeros((4, 7)), np.zeros((4, 7))
+
+
 def frames(n, seed=0):
     return [np.random.default_rng(seed + i).integers(0, 255, (32, 32, 3), dtype=np.uint8) for i in range(n)]
 
@@ -67,11 +75,6 @@ def test_proprio_is_the_kinematic_models_through_the_executed_chunks():
     torch.manual_seed(0)
     sim = ImaginedSimulator(WorldSimulator(**TINY), NextStateModel(), camera(2.0))
 
-    class Acting(Recorder):
-        def act_chunk(self, images, proprio, instruction):
-            self.seen.append(np.asarray(proprio))
-            return np.full((4, 7), 0.5), np.zeros((4, 7)), np.zeros((4, 7))
-
     view = WorldModelView(Acting(), sim, "agentview", parts=("proprio",))
     start = np.array([0.0, 0.0, 1.0, 3.14, 0.0, 0.0, 1.0])
     image = frames(1)[0]
@@ -94,11 +97,6 @@ def test_unknown_view_parts_are_refused():
 def test_pose_or_gripper_alone_keeps_the_rest_of_the_real_state():
     torch.manual_seed(0)
     sim = ImaginedSimulator(WorldSimulator(**TINY), NextStateModel(), camera(2.0))
-
-    class Acting(Recorder):
-        def act_chunk(self, images, proprio, instruction):
-            self.seen.append(np.asarray(proprio))
-            return np.full((4, 7), 0.5), np.zeros((4, 7)), np.zeros((4, 7))
 
     start = np.array([0.0, 0.0, 1.0, 3.14, 0.0, 0.0, 1.0])
     both = {}
