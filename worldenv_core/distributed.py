@@ -177,11 +177,19 @@ def random_rows(sample, shape, generator, **kwargs) -> torch.Tensor:
     block's numbers then depend on its own generator alone, so a batch split over ranks draws
     exactly what the whole batch would."""
     if not isinstance(generator, (list, tuple)):
-        return sample(shape, generator=generator, **kwargs)
+        return _on_generator(sample, shape, generator, **kwargs)
     rows, rest = divmod(shape[0], len(generator))
     if rest:
         raise ValueError(f"{shape[0]} rows do not split into {len(generator)} equal blocks")
-    return torch.cat([sample((rows, *shape[1:]), generator=g, **kwargs) for g in generator])
+    return torch.cat([_on_generator(sample, (rows, *shape[1:]), g, **kwargs) for g in generator])
+
+
+def _on_generator(sample, shape, generator, device=None, **kwargs) -> torch.Tensor:
+    """Draw on the generator's device, then move: torch refuses a CPU generator for a CUDA tensor,
+    and drawing where the generator lives keeps a seeded run's numbers the same on any device."""
+    if generator is None or device is None or torch.device(device) == generator.device:
+        return sample(shape, generator=generator, device=device, **kwargs)
+    return sample(shape, generator=generator, device=generator.device, **kwargs).to(device)
 
 
 def gather(obj) -> list:

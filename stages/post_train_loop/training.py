@@ -14,7 +14,6 @@ from pathlib import Path
 import torch
 
 from worldenv_core import distributed
-from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.envs.replay import RealStart
 from worldenv_core.imagination.env import Context, mid_episode_frames
 from worldenv_core.models.checkpoint import save_model
@@ -30,6 +29,8 @@ def episode_starts(paths: list[Path], cameras: list[str], mid_frames: int):
     """(episode, where it starts in the real simulator) for each start frame of each collected
     episode: its first frame (the paper), or with `rl.mid_episode_frames` = mid_frames > 0, that many
     frames spread over its part before the first success."""
+    from worldenv_core.data.mcap_io import read_episode  # here: LOOP from a context pack runs without MCAP
+
     for p in paths:
         ep = read_episode(p, cameras=cameras)
         for f in mid_episode_frames(ep.success, ep.length, mid_frames) if mid_frames else [0]:

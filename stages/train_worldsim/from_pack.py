@@ -17,9 +17,7 @@ from __future__ import annotations
 
 import argparse
 import copy
-import json
 import logging
-import time
 from pathlib import Path
 
 import torch
@@ -30,8 +28,7 @@ from stages.train_worldsim.training import rollout_phase
 from worldenv_core.kinematics.camera import PinholeCamera
 from worldenv_core.models.checkpoint import load_checkpoint, read_config, save_model
 from worldenv_core.tracking import make_tracker
-from worldenv_core.training import Trainer, pick_device
-from worldenv_core.viz import plot_history
+from worldenv_core.training import Trainer, pick_device, planned_steps, planned_total
 
 log = logging.getLogger("worldenv.train_worldsim.from_pack")
 CONF = Path(__file__).resolve().parents[2] / "conf"
@@ -46,20 +43,6 @@ def settings(overrides: list[str]):
         base.pop(key, None)
     cfg = OmegaConf.merge({"scale": scale, "logger": logger}, base, OmegaConf.from_dotlist(overrides))
     return cfg
-
-
-def planned_steps(step_fn, batches, seconds: float, probe: int = 12) -> int:
-    """How many steps fit in `seconds`, from the median of `probe` timed steps after 3 warm ones."""
-    times = []
-    for i in range(probe + 3):
-        t0 = time.perf_counter()
-        step_fn(next(batches))
-        if torch.cuda.is_available():
-            torch.cuda.synchronize()
-        if i >= 3:
-            times.append(time.perf_counter() - t0)
-    per_step = sorted(times)[len(times) // 2]
-    return max(1, int(seconds / per_step))
 
 
 def main(argv: list[str] | None = None) -> Path:
@@ -88,18 +71,13 @@ def main(argv: list[str] | None = None) -> Path:
     optimizer = torch.optim.AdamW(model.velocity.parameters(), lr=cfg.flow.lr)
     chunks_of = lambda ahead: pack_chunks(latents, episodes, model, ahead)  # noqa: E731 (its chunk and memory offsets only)
 
-    plan_file = work / "plan.json"
-    if plan_file.exists():  # a resumed run trains to the total it first planned
-        steps = json.loads(plan_file.read_text())["steps"]
-    elif args.steps:
-        steps = args.steps
-    else:  # time a few steps on copies, so the run itself starts from the untouched model
+    def time_steps(seconds: float) -> int:  # on copies, so the run itself starts from the untouched model
         probe_model, probe_ema = copy.deepcopy(model), copy.deepcopy(ema)
         probe_opt = torch.optim.AdamW(probe_model.velocity.parameters(), lr=cfg.flow.lr)
         probe = rollout_phase(probe_model, probe_ema, probe_opt, chunks_of, cameras, cfg, device)
-        steps = planned_steps(probe.step, iter(probe.batches(0)), args.minutes * 60)
-        del probe_model, probe_ema, probe_opt, probe
-    plan_file.write_text(json.dumps({"steps": steps, "overrides": args.overrides, "minutes": args.minutes}))
+        return planned_steps(probe.step, iter(probe.batches(0)), seconds)
+
+    steps = planned_total(work, args.steps, args.minutes, time_steps, args.overrides)
     cfg.rollout.steps = steps
 
     prior = int(base_meta.get("rollout_steps") or 0)
@@ -127,9 +105,7 @@ def main(argv: list[str] | None = None) -> Path:
              cfg.rollout.batch_size, device)
     trainer.fit([rollout_phase(model, ema, optimizer, chunks_of, cameras, cfg, device)], after_step=snapshot)
     final = trainer.save_final(work / "worldsim", model=ema)
-    trainer.tracker.close()
-    (work / "history.json").write_text(json.dumps(trainer.history))
-    plot_history(trainer.history, work / "losses.png", f"train_worldsim from a latent pack {base_meta['task']}")
+    trainer.close_off("losses.png", f"train_worldsim from a latent pack {base_meta['task']}")
     log.info("saved %s (%d steps, %.0f s this sitting)", final, steps, trainer.wall_s)
     return final
 

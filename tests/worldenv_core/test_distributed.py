@@ -12,13 +12,31 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from worldenv_core.distributed import shard, trainer_options
+from worldenv_core.distributed import random_rows, shard, trainer_options
 from worldenv_core.errors import ConfigError
 from worldenv_core.manifest import Manifest
 from worldenv_core.models.checkpoint import load_weights
 from worldenv_core.training import Phase, Trainer, optimize
 
 REPO = Path(__file__).resolve().parents[2]
+
+
+def test_random_rows_draw_where_the_generator_lives_and_move_to_the_tensors_device():
+    """A CPU generator for another device's tensor (LOOP's per-context streams on a GPU): torch
+    refuses it, so rows are drawn on the generator's device, the same numbers, then moved."""
+    gens = lambda: [torch.Generator().manual_seed(s) for s in (1, 2)]  # noqa: E731
+    here = random_rows(torch.rand, (4, 3), gens(), device="cpu")
+    assert torch.equal(here, torch.cat([torch.rand((2, 3), generator=g) for g in gens()]))
+    asked = []
+
+    def rand(shape, generator=None, device=None, **kwargs):  # torch.rand, noting where it was asked to draw
+        asked.append(torch.device(device))
+        return torch.rand(shape, generator=generator, device=device, **kwargs)
+    moved = random_rows(rand, (4, 3), gens(), device="meta")  # "meta" stands in for a GPU here
+    assert asked == [torch.device("cpu")] * 2 and moved.device.type == "meta" and moved.shape == (4, 3)
+    one = torch.Generator().manual_seed(3)
+    random_rows(torch.randn, (5,), one, device="meta")
+    assert torch.equal(torch.randn(2, generator=one), torch.randn(7, generator=torch.Generator().manual_seed(3))[5:])
 
 
 def test_a_rank_takes_its_contiguous_slice_of_every_part_of_a_batch():

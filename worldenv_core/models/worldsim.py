@@ -219,8 +219,8 @@ class WorldSimulator(nn.Module):
         latents; the flow carries noise to the (scaled) change from the current latent."""
         mem, maps, index, act = self._condition(memory, action_maps, actions)
         x1 = ((target - memory[:, :1]) / self.delta_scale).flatten(0, 1)
-        x0 = torch.randn(x1.shape, generator=generator, device=x1.device)
-        t = torch.rand(x1.shape[0], generator=generator, device=x1.device)
+        x0 = random_rows(torch.randn, x1.shape, generator, device=x1.device)
+        t = random_rows(torch.rand, (x1.shape[0],), generator, device=x1.device)
         x_t = (1 - t[:, None, None, None]) * x0 + t[:, None, None, None] * x1
         err = (self.velocity(x_t, t, mem, maps, index, act) - (x1 - x0)).pow(2).mean(dim=(1, 2, 3))
         if valid is not None:

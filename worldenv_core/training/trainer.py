@@ -15,6 +15,7 @@ autocast on GPU (`precision`) work the same at any world size."""
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from collections.abc import Callable, Iterator
@@ -207,6 +208,13 @@ class Trainer:
         """The trained model (or another one, e.g. its EMA) as a self-describing checkpoint folder."""
         return save_model(path, (model or self.model).cpu(), self.model_config, {**self.meta, "step": self.step, **meta})
 
+    def close_off(self, plot: str, title: str) -> Path:
+        """Off the manifest (the from-pack entry points): close the tracker, write the history and
+        draw the curves in the work dir. -> the plot."""
+        self.tracker.close()
+        (self.work / "history.json").write_text(json.dumps(self.history))
+        return plot_history(self.history, self.work / plot, title)
+
     def finish(self, stage, final: Path, title: str, plot: str = "losses.png") -> Path:
         """Close the tracker, draw the curves and record the final checkpoint and the plot as the
         stage's outputs. -> the plot."""
@@ -216,6 +224,33 @@ class Trainer:
         figure = plot_history(self.history, self.work / plot, title)
         stage.add_output(figure, kind="plot")
         return figure
+
+
+def planned_total(work: Path, steps: int | None, minutes: float | None, time_steps: Callable[[float], int],
+                  overrides: list[str]) -> int:
+    """The total steps of a from-pack run (`--steps` or `--minutes`): given, or timed on this machine
+    (`time_steps(seconds)`, e.g. `planned_steps` on copies of the model); written to the work dir so a
+    re-run resumes to the total it first planned."""
+    plan = Path(work) / "plan.json"
+    if plan.exists():
+        return json.loads(plan.read_text())["steps"]
+    total = steps or time_steps(minutes * 60)
+    plan.write_text(json.dumps({"steps": total, "overrides": overrides, "minutes": minutes}))
+    return total
+
+
+def planned_steps(step_fn, batches, seconds: float, probe: int = 12, warm: int = 3) -> int:
+    """How many steps fit in `seconds`, from the median of `probe` timed steps after `warm` untimed
+    ones (`--minutes` of the from-pack entry points; run it on copies of the model and optimizer)."""
+    times = []
+    for i in range(probe + warm):
+        t0 = time.perf_counter()
+        step_fn(next(batches))
+        if torch.cuda.is_available():
+            torch.cuda.synchronize()
+        if i >= warm:
+            times.append(time.perf_counter() - t0)
+    return max(1, int(seconds / sorted(times)[len(times) // 2]))
 
 
 def record_checkpoint(stage, folder: Path) -> None:

@@ -195,3 +195,50 @@ def test_rollouts_start_part_way_through_the_collected_episodes(trained):
     assert real["contexts"] == first["contexts"] and real["train_real_episodes"] == 2
     with pytest.raises(ConfigError, match="mid_episode_frames"):
         post_train_loop(cfg("post_train_loop", exp, *LOOP, "rl.mid_episode_frames=-1"))
+
+
+def test_loop_from_a_context_pack_trains_as_the_stage_does_without_episodes_or_encoder(trained, tmp_path):
+    """The GPU route: the contexts packed with their instruction embeddings, LOOP run off them (no
+    MCAP, simulator or instruction encoder needed) into the policy the stage itself trains from the
+    same contexts and seed; resumable; a pack of something else is refused."""
+    import torch
+
+    from stages.post_train_loop import context_pack, from_pack
+    from stages.post_train_loop.training import contexts_from_episodes
+    from worldenv_core.models.text import InstructionEncoder
+
+    exp, _ = trained
+    settings = [o for o in LOOP if not o.startswith(("expert_only", "eval."))] + ["eval.imagined_contexts=1"]
+    stage = post_train_loop(cfg("post_train_loop", exp, "expert_only=true", "eval.every=0", *settings))
+    m = Manifest(exp)
+    rec = m.latest("post_train_loop", task="tiny", env="imagined")
+    inputs = {m.get(i).stage: m.get(i) for i in rec.inputs}
+    folder = lambda stage_name: next(p.parent for p in m.resolve(inputs[stage_name])  # noqa: E731
+                                     if p.name == "model.safetensors")
+    episodes = sorted(p for p in m.resolve(inputs["collect"], kind="episodes") if p.suffix == ".mcap")
+    pack = context_pack.main([str(p) for p in episodes] + ["--out", str(tmp_path / "contexts.st")])
+    contexts, keys, encoder, camera = context_pack.read_context_pack(pack)
+    want, starts = contexts_from_episodes(episodes, camera)
+    assert keys == [st.key for st in starts] and len(contexts) == len(want) == stage["contexts"]
+    assert all(torch.equal(a.frame, b.frame) and torch.equal(a.proprio, torch.as_tensor(b.proprio, dtype=torch.float64))
+               and a.instruction == b.instruction and a.task_id == b.task_id for a, b in zip(contexts, want))
+    text = contexts[0].instruction
+    assert torch.allclose(encoder([text]), InstructionEncoder()([text]))
+    with pytest.raises(KeyError, match="no embedding"):
+        encoder(["open the fridge"])
+
+    args = [str(pack), "--policy", str(folder("train_policy")), "--worldsim", str(folder("train_worldsim")),
+            "--reflector", str(folder("train_reflector")), "--work", str(tmp_path / "w"), "--iterations", "2",
+            "scale=tiny", "eval.every=0", *settings]
+    final = from_pack.main(args)
+    tuned, meta = load_checkpoint(final, "policy", None)
+    assert meta["trained_from"]["contexts"] == len(contexts) and meta["iteration"] == 2
+    ours = load_checkpoint(next(p.parent for p in m.resolve(rec) if p.name == "model.safetensors"), "policy", None)[0]
+    assert all(torch.allclose(v, ours.state_dict()[k], atol=1e-6) for k, v in tuned.state_dict().items())
+    history = json.loads((tmp_path / "w" / "history.json").read_text())
+    assert [h["step"] for h in history if "imagined_success" in h] == [0, 2]
+    weights = (final / "model.safetensors").read_bytes()
+    from_pack.main(args)  # the same command again: resumes at the end, trains nothing
+    assert (final / "model.safetensors").read_bytes() == weights
+    with pytest.raises(ValueError, match="not a context pack"):
+        from_pack.main([str(folder("train_policy") / "model.safetensors"), *args[1:]])
