@@ -31,7 +31,7 @@ from stages.post_train_loop.evaluation import imagined_success
 from stages.post_train_loop.training import imagined_collector, rl_phase
 from worldenv_core.contract import TaskContract
 from worldenv_core.imagination.env import build_imagined_env
-from worldenv_core.models.checkpoint import load_checkpoint, read_config
+from worldenv_core.models.checkpoint import CheckpointError, load_checkpoint, read_config
 from worldenv_core.rl.loop import policy_param_groups
 from worldenv_core.rl.termination import reflector_eta
 from worldenv_core.stage import compose_config
@@ -70,7 +70,7 @@ def main(argv: list[str] | None = None) -> Path:
     env, sim_camera = build_imagined_env(args.worldsim, args.reflector, eta, encode, rl.horizon, rl.sampling_steps,
                                          device, contract, rl.sampler_noise)
     if camera != sim_camera or policy.cameras != [camera]:
-        raise SystemExit(f"the pack's frames are from {camera!r}, the world model imagines {sim_camera!r}, the policy "
+        raise CheckpointError(f"the pack's frames are from {camera!r}, the world model imagines {sim_camera!r}, the policy "
                          f"looks at {policy.cameras}: all three must be one camera")
 
     def phase(model, optimizer, iterations: int):
