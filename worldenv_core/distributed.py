@@ -187,7 +187,9 @@ def random_rows(sample, shape, generator, **kwargs) -> torch.Tensor:
 def _on_generator(sample, shape, generator, device=None, **kwargs) -> torch.Tensor:
     """Draw on the generator's device, then move: torch refuses a CPU generator for a CUDA tensor,
     and drawing where the generator lives keeps a seeded run's numbers the same on any device."""
-    if generator is None or device is None or torch.device(device) == generator.device:
+    if device is None:  # where `sample` puts it (it need not take a device)
+        return sample(shape, generator=generator, **kwargs)
+    if generator is None or torch.device(device) == generator.device:
         return sample(shape, generator=generator, device=device, **kwargs)
     return sample(shape, generator=generator, device=generator.device, **kwargs).to(device)
 

@@ -34,6 +34,8 @@ def test_random_rows_draw_where_the_generator_lives_and_move_to_the_tensors_devi
         return torch.rand(shape, generator=generator, device=device, **kwargs)
     moved = random_rows(rand, (4, 3), gens(), device="meta")  # "meta" stands in for a GPU here
     assert asked == [torch.device("cpu")] * 2 and moved.device.type == "meta" and moved.shape == (4, 3)
+    seeds = random_rows(lambda shape, generator: torch.randint(9, shape, generator=generator), (4,), gens())
+    assert seeds.shape == (4,)  # no device asked: a sampler that takes none works as before
     one = torch.Generator().manual_seed(3)
     random_rows(torch.randn, (5,), one, device="meta")
     assert torch.equal(torch.randn(2, generator=one), torch.randn(7, generator=torch.Generator().manual_seed(3))[5:])
