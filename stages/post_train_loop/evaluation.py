@@ -199,3 +199,32 @@ def plot_routes(ctx: ReportContext, runs: list[StageRecord], path: Path) -> Path
     axes[0].legend(fontsize=7)
     fig.tight_layout()
     return save_figure(fig, path)
+
+
+def plot_pack_runs(histories: dict[str, str | Path], path: str | Path, title: str = "") -> Path:
+    """LOOP runs side by side (`from_pack`'s history.json, or a work dir's training.json), by
+    iteration: imagined success (reflector > eta), groups kept and mean reward, each raw (faint)
+    and as a 9-iteration running mean. Runs on one pack with one seed draw the same contexts at the
+    same iteration, so their curves share a shape."""
+    import json
+
+    from worldenv_core.viz import figure, save_figure
+
+    panels = [("reflector_success_rate", "imagined success (reflector > eta) per iteration"),
+              ("kept_groups", "groups kept (verdicts split)"), ("mean_reward", "mean reward R at t_end")]
+    fig, axes = figure(1, len(panels), figsize=(14, 3.6))
+    for i, (label, file) in enumerate(histories.items()):
+        steps = [h for h in json.loads(Path(file).read_text()) if "mean_reward" in h]
+        it = np.array([h["step"] for h in steps])
+        colour, style = f"C{i % 2}", "-" if i < 2 else "--"
+        for ax, (key, name) in zip(axes, panels):
+            v = np.array([h[key] for h in steps])
+            k = min(9, len(v))
+            mean = np.convolve(v, np.ones(k) / k, mode="valid")
+            ax.plot(it, v, alpha=0.12, color=colour, ls=style)
+            ax.plot(it[k // 2: k // 2 + len(mean)], mean, label=label, color=colour, ls=style)
+            ax.set_title(name, fontsize=9)
+            ax.set_xlabel("LOOP iteration")
+    axes[0].legend(fontsize=8)
+    fig.suptitle(title, fontsize=9)
+    return save_figure(fig, path)

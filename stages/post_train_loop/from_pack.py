@@ -70,8 +70,8 @@ def main(argv: list[str] | None = None) -> Path:
     env, sim_camera = build_imagined_env(args.worldsim, args.reflector, eta, encode, rl.horizon, rl.sampling_steps,
                                          device, contract, rl.sampler_noise)
     if camera != sim_camera or policy.cameras != [camera]:
-        raise CheckpointError(f"the pack's frames are from {camera!r}, the world model imagines {sim_camera!r}, the policy "
-                         f"looks at {policy.cameras}: all three must be one camera")
+        raise CheckpointError(f"the pack's frames are from {camera!r}, the world model imagines {sim_camera!r}, "
+                              f"the policy looks at {policy.cameras}: all three must be one camera")
 
     def phase(model, optimizer, iterations: int):
         with_iterations = copy.deepcopy(rl)

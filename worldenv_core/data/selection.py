@@ -10,7 +10,6 @@ collected again.
 from __future__ import annotations
 
 import glob
-
 import logging
 import os
 import time
