@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 import os
 import random
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -77,9 +78,9 @@ def experiment(cfg: DictConfig) -> Manifest:
     root = Path(cfg.experiment_dir)
     try:
         root.mkdir(parents=True, exist_ok=True)
-        probe = root / ".write_test"
-        probe.write_text("")
-        probe.unlink()
+        # a name of its own: distributed ranks probe the same directory at the same time
+        with tempfile.NamedTemporaryFile(dir=root, prefix=".write_test"):
+            pass
     except OSError as e:
         raise ConfigError(f"experiment_dir {root} is not writable: {e}") from e
     return Manifest(root)

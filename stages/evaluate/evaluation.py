@@ -32,12 +32,18 @@ def summarise(rows: list[dict]) -> dict:
             "episodes": len(rows), "per_task": per_task}
 
 
+def init_span(summary: dict) -> str:
+    """Which init states an evaluation ran: "first 20", or "20-49" for a later range."""
+    first, n = summary.get("first_init_state", 0), summary["init_states"]
+    return f"first {n}" if not first else f"{first}-{first + n - 1}"
+
+
 def markdown(summary: dict, suite: str) -> str:
     """One evaluation's results.md."""
     rows = [[r["task_id"], r["task"], f"{100 * r['success_rate']:.0f}%", f"{100 * r['ever_succeeded_rate']:.0f}%",
              f"{r['mean_steps']:.0f}"] for r in summary["per_task"]]
     rows.append(["all", "", f"**{100 * summary['success_rate']:.1f}%**", f"{100 * summary['ever_succeeded_rate']:.1f}%", ""])
-    lines = [f"Success on {suite} ({summary['termination']} termination, first {summary['init_states']} "
+    lines = [f"Success on {suite} ({summary['termination']} termination, {init_span(summary)} "
              f"benchmark init states per task)\n",
              *markdown_table(["task", "name", "success", "reached success at some step", "mean steps"], rows)]
     if "reflector_termination" in summary:
@@ -58,6 +64,7 @@ def record_mode(stage, mode: str, rows: list[dict], videos: dict, setting: dict,
     summary = summarise(rows)
     suite = setting["suite"]
     summary.update(policy=setting["policy"], termination=mode, init_states=setting["init_states"],
+                   first_init_state=setting["first_init_state"],
                    report_dir=str(out_dir), suite=suite, max_steps=setting["max_steps"])
     if mode == "reflector":
         summary.update(reflector=reflector_path, eta=eta, reflector_termination=termination_metrics(
@@ -79,9 +86,10 @@ def record_mode(stage, mode: str, rows: list[dict], videos: dict, setting: dict,
 
 
 def own_suite_evaluations(ctx: ReportContext, **tags) -> list[StageRecord]:
-    """The task's evaluations on its own suite (those on another suite carry an `eval_suite` tag
-    and have their own table; those through a world model's view a `view` tag: diagnostics)."""
-    return [r for r in ctx.find("evaluate", **tags) if "eval_suite" not in r.tags and "view" not in r.tags]
+    """The task's evaluations of the first N init states on its own suite (those on another suite
+    carry an `eval_suite` tag and have their own table; those through a world model's view a `view`
+    tag: diagnostics; those of a later range a `first_init_state` tag: pooled by `paired`)."""
+    return [r for r in ctx.find("evaluate", **tags) if not {"eval_suite", "view", "first_init_state"} & set(r.tags)]
 
 
 def success_table(ctx: ReportContext) -> tuple[list[str], dict]:

@@ -37,8 +37,10 @@ def validate(cfg: DictConfig) -> None:
     if cfg.get("policy_label") not in (None, *POLICY_SOURCES):
         raise ConfigError(f"policy_label must be one of {', '.join(POLICY_SOURCES)} (or null), got {cfg.policy_label!r}")
     positive_int(cfg, "videos_per_task", allow_zero=True)
-    if cfg.init_states > 50:
-        raise ConfigError(f"init_states is at most 50 (the benchmark has 50 per task), got {cfg.init_states}")
+    positive_int(cfg, "first_init_state", allow_zero=True)
+    if cfg.first_init_state + cfg.init_states > 50:
+        raise ConfigError(f"first_init_state + init_states is at most 50 (the benchmark has 50 init states per task), "
+                          f"got {cfg.first_init_state} + {cfg.init_states}")
     if cfg.workers is not None:
         positive_int(cfg, "workers")
     try:
@@ -94,10 +96,13 @@ def run(cfg: DictConfig) -> dict:
     suite_tag = {"eval_suite": suite} if cfg.eval_suite is not None else {}
     # so is one through a world model's eyes (a diagnostic of imagination, not a benchmark result)
     view_tag = {"view": "+".join(cfg.view_parts)} if cfg.view_through is not None else {}
+    # and one of a later init-state range (the report's tables are of the first N; `paired` pools ranges)
+    range_tag = {"first_init_state": cfg.first_init_state} if cfg.first_init_state else {}
     summaries = {}
     with ExitStack() as records:  # one manifest record per mode, all timed over the shared rollouts
         stages = {m: records.enter_context(StageRun(manifest, "evaluate", {
-            "task": task.name, "scale": cfg.scale.name, "termination": m, "policy": policy_tag, **suite_tag, **view_tag},
+            "task": task.name, "scale": cfg.scale.name, "termination": m, "policy": policy_tag, **suite_tag, **view_tag,
+            **range_tag},
             resolved(cfg))) for m in modes}
         policy_path = [resolve_policy(cfg, s) for s in stages.values()][0]
         reflector_path = ([resolve_reflector(cfg, s) for s in stages.values()][0]
@@ -105,7 +110,7 @@ def run(cfg: DictConfig) -> dict:
         eta = reflector_eta(reflector_path, cfg.eta) if reflector_path else None
         view = ([resolve_checkpoint(s, cfg.view_through, "train_worldsim", task.name, cfg.scale.name)
                  for s in stages.values()][0] if cfg.view_through is not None else None)
-        inits = list(range(cfg.init_states))
+        inits = list(range(cfg.first_init_state, cfg.first_init_state + cfg.init_states))
         contract = task_contract(cfg).on_suite(suite, max_steps)
         jobs = [PolicyEvalJob(policy_path=policy_path, contract=contract, task_id=t, init_ids=tuple(inits[i:i + JOB_SIZE]),
                               termination=cfg.termination,
@@ -123,7 +128,8 @@ def run(cfg: DictConfig) -> dict:
         for mode, stage in stages.items():
             out_dir = run_dir / mode if cfg.termination == "all" else run_dir
             summaries[mode] = record_mode(stage, mode, [r for r in rows if r["termination"] == mode], videos,
-                                          {"policy": policy_path, "init_states": cfg.init_states, "suite": suite,
+                                          {"policy": policy_path, "init_states": cfg.init_states,
+                                           "first_init_state": cfg.first_init_state, "suite": suite,
                                            "max_steps": max_steps}, reflector_path, eta, out_dir)
             # termination=all: the modes share one rollout per episode, counted once (on the first mode)
             stage.metrics["real_episodes"] = summaries[mode]["episodes"] if mode == modes[0] else 0

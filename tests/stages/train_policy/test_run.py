@@ -8,6 +8,7 @@ from stages.evaluate.run import run as evaluate
 from stages.train_policy.run import run as train_policy
 from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.manifest import ArtefactError, Manifest
+from stages.evaluate import paired
 from stages.evaluate.evaluation import success_table
 from worldenv_core.report import ReportContext
 from worldenv_core.stage import ConfigError, compose_config
@@ -87,6 +88,8 @@ def test_evaluate_without_a_policy_names_the_missing_stage(tmp_path):
         evaluate(cfg("evaluate", tmp_path, "termination=never"))
     with pytest.raises(ConfigError, match="policy_label must be one of"):
         evaluate(cfg("evaluate", tmp_path, "policy_label=best"))
+    with pytest.raises(ConfigError, match="first_init_state \\+ init_states is at most 50"):
+        evaluate(cfg("evaluate", tmp_path, "first_init_state=49", "init_states=2"))
 
 
 def test_a_released_checkpoint_folder_fills_its_named_column(experiment):
@@ -117,3 +120,26 @@ def test_evaluate_on_another_registered_suite_with_the_same_tasks(experiment):
     # the task's own table still shows its own suite's evaluation
     _, cells = success_table(ReportContext(m, "tiny", exp / "report"))
     assert own.id != rec.id and cells[("sft", "fixed")]["suite"] == "libero_object"
+
+
+def test_a_later_init_state_range_pools_with_the_first_into_one_paired_comparison(experiment):
+    exp, _, _ = experiment
+    run = ("termination=fixed", "init_states=1", "workers=1", "progress=false", "videos_per_task=0")
+    first = evaluate(cfg("evaluate", exp, *run))
+    later = evaluate(cfg("evaluate", exp, *run, "first_init_state=1"))
+    (ep,) = json.loads((Path(later["report_dir"]) / "episodes.json").read_text())
+    assert ep["init_state"] == 1 and later["first_init_state"] == 1
+    m = Manifest(exp)
+    later_id = m.latest("evaluate", task="tiny", first_init_state=1).id
+    first_id = next(r.id for r in reversed(m.find("evaluate", task="tiny", termination="fixed"))
+                    if r.metrics.get("report_dir") == first["report_dir"])
+    # the report's tables stay those of the first N init states
+    _, cells = success_table(ReportContext(m, "tiny", exp / "report"))
+    assert cells[("sft", "fixed")]["report_dir"] == first["report_dir"]
+    out = paired.main([str(exp), "--a", first_id, later_id, "--b", later_id, first_id, "--json", str(exp / "p.json")])
+    assert out["episodes"] == 2 and out["only_a"] == out["only_b"] == 0 and out["p_value"] == 1.0
+    assert json.loads((exp / "p.json").read_text())["a_records"] == [first_id, later_id]
+    with pytest.raises(ConfigError, match="init state 0 is in"):
+        paired.main([str(exp), "--a", first_id, first_id, "--b", later_id])
+    with pytest.raises(ConfigError, match="share no episode"):
+        paired.main([str(exp), "--a", first_id, "--b", later_id])
