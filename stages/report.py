@@ -17,6 +17,7 @@ from stages.evaluate_imagination import evaluation as evaluate_imagination
 from stages.post_train_loop import evaluation as post_train_loop
 from stages.train_reflector import evaluation as train_reflector
 from stages.train_worldsim import evaluation as train_worldsim
+from worldenv_core.files import write_text_atomic
 from worldenv_core.manifest import Manifest, StageRecord
 from worldenv_core.report import ReportContext, markdown_table, titled
 
@@ -33,11 +34,7 @@ def write_report(experiment_dir: str | Path, task: str) -> Path:
         lines += section(ctx)
     lines += real_episodes_section(ctx)
     lines += wall_time_section(ctx)
-    path = ctx.out / "report.md"
-    tmp = path.with_suffix(".md.tmp")
-    tmp.write_text("\n".join(lines) + "\n")
-    tmp.replace(path)
-    return path
+    return write_text_atomic(ctx.out / "report.md", "\n".join(lines) + "\n")
 
 
 def _producer(record: StageRecord, records: list[StageRecord]) -> StageRecord:

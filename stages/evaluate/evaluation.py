@@ -204,7 +204,7 @@ def other_suites_table(ctx: ReportContext) -> list[str]:
                           rows) if rows else []
 
 
-def _checkpoint_name(path: str) -> str:
+def checkpoint_name(path: str) -> str:
     """A stage run's checkpoint by <stage>/<work dir>, any other folder (released under checkpoints/,
     refitted, copied) by its parent and name."""
     parts = Path(path).parts
@@ -237,7 +237,7 @@ def view_table(ctx: ReportContext) -> list[str]:
         if not t["episodes"]:
             continue
         shared = [k for k in b if k in a]
-        rows.append([f"`{_checkpoint_name(summary['policy'])}`", parts, f"`{_checkpoint_name(r.metrics['view_through'])}`",
+        rows.append([f"`{checkpoint_name(summary['policy'])}`", parts, f"`{checkpoint_name(r.metrics['view_through'])}`",
                      term, t["episodes"], f"{100 * np.mean([a[k] for k in shared]):.1f} %",
                      f"{100 * np.mean([b[k] for k in shared]):.1f} %", f"{t['only_a']} / {t['only_b']}",
                      f"{t['p_value']:.3f}"])

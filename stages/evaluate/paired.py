@@ -1,10 +1,13 @@
 """Two policies on the real episodes both ran, pooled over evaluation records: success of each,
 per task and overall, the episodes only one of them solved, and the exact McNemar p-value.
-Several records per side pool their episodes, so a benchmark evaluated in ranges
+Several evaluations per side pool their episodes, so a benchmark evaluated in ranges
 (`init_states=20`, then `first_init_state=20 init_states=30`) compares as one 500-episode run.
+An evaluation is named by its manifest record id or by its output folder (`results.json` and
+`episodes.json`, as `evaluate` writes them and as kept under `results/` in the repository).
 
     python -m stages.evaluate.paired outputs/libero_goal-small \\
         --a evaluate-05f27e1f2f64 evaluate-b3f4f4885ad3 --b evaluate-e20e05a3d33f [--json paired.json]
+    python -m stages.evaluate.paired - --a results/libero_goal/evaluate-* --b <work>/evaluate/...
 """
 
 from __future__ import annotations
@@ -15,32 +18,49 @@ from pathlib import Path
 
 import numpy as np
 
+from stages.evaluate.evaluation import checkpoint_name
 from worldenv_core.errors import ConfigError
 from worldenv_core.manifest import Manifest
 from worldenv_core.metrics import paired_success_test
 from worldenv_core.report import ReportContext, markdown_table
 
 
-def pooled_episodes(manifest: Manifest, record_ids: list[str]) -> dict[tuple[int, int], bool]:
-    """{(task id, init state): success} over the records' episodes; one termination mode and one
-    policy checkpoint throughout, and no episode twice (which of two runs would count?)."""
+def read_evaluation(manifest: Manifest | None, name: str) -> tuple[dict | None, list | None]:
+    """(results.json, episodes.json) of an evaluation named by output folder or record id."""
+    folder = Path(name)
+    if (folder / "results.json").is_file():
+        rows = folder / "episodes.json"
+        return json.loads((folder / "results.json").read_text()), json.loads(rows.read_text()) if rows.is_file() else None
+    if manifest is None:
+        raise ConfigError(f"{name} is no evaluation folder (results.json, episodes.json), and no experiment "
+                          f"directory was given to look it up as a record id")
+    rec = manifest.get(name)
+    if rec.stage != "evaluate":
+        raise ConfigError(f"{name} is a {rec.stage} record, not an evaluation")
     ctx = ReportContext(manifest, "", manifest.root / "report")
+    return ctx.report_json(rec, "results.json"), ctx.report_json(rec, "episodes.json")
+
+
+def pooled_episodes(manifest: Manifest | None, names: list[str]) -> dict[tuple[int, int], bool]:
+    """{(task id, init state): success} over the evaluations' episodes (record ids or output
+    folders); one termination mode and one policy checkpoint throughout, and no episode twice
+    (which of two runs would count?)."""
     episodes, seen = {}, {}
-    for rid in record_ids:
-        rec = manifest.get(rid)
-        if rec.stage != "evaluate":
-            raise ConfigError(f"{rid} is a {rec.stage} record, not an evaluation")
-        rows, summary = ctx.report_json(rec, "episodes.json"), ctx.report_json(rec, "results.json")
+    for rid in names:
+        summary, rows = read_evaluation(manifest, rid)
         if rows is None or summary is None:
-            raise ConfigError(f"{rid}'s episodes.json or results.json is gone from {manifest.root}")
-        for what in ("termination", "policy", "suite"):
-            if seen.setdefault(what, summary[what]) != summary[what]:
-                raise ConfigError(f"{rid} evaluated {what} {summary[what]!r}, the records before it "
+            raise ConfigError(f"{rid}'s episodes.json or results.json is gone")
+        # the checkpoint by name, not by path: evaluations kept in the repository ran on other machines
+        setting = {"termination": summary["termination"], "suite": summary["suite"],
+                   "policy": checkpoint_name(summary["policy"])}
+        for what, value in setting.items():
+            if seen.setdefault(what, value) != value:
+                raise ConfigError(f"{rid} evaluated {what} {value!r}, the evaluations before it "
                                   f"{seen[what]!r}: pool only evaluations of one policy and setting")
         for r in rows:
             key = (r["task_id"], r["init_state"])
             if key in episodes:
-                raise ConfigError(f"task {key[0]} init state {key[1]} is in {rid} and in a record before it")
+                raise ConfigError(f"task {key[0]} init state {key[1]} is in {rid} and in an evaluation before it")
             episodes[key] = bool(r["success"])
     return episodes
 
@@ -71,12 +91,12 @@ def markdown(result: dict) -> str:
 
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("experiment_dir")
-    p.add_argument("--a", nargs="+", required=True, help="evaluate record ids of the first policy (pooled)")
-    p.add_argument("--b", nargs="+", required=True, help="evaluate record ids of the second policy (pooled)")
+    p.add_argument("experiment_dir", help="where record ids are looked up ('-': only output folders are named)")
+    p.add_argument("--a", nargs="+", required=True, help="evaluations of the first policy (pooled)")
+    p.add_argument("--b", nargs="+", required=True, help="evaluations of the second policy (pooled)")
     p.add_argument("--json", help="also write the result here")
     args = p.parse_args(argv)
-    manifest = Manifest(args.experiment_dir)
+    manifest = None if args.experiment_dir == "-" else Manifest(args.experiment_dir)
     result = compare(pooled_episodes(manifest, args.a), pooled_episodes(manifest, args.b))
     result.update(a_records=args.a, b_records=args.b)
     print(markdown(result), end="")

@@ -16,6 +16,7 @@ from stages.evaluate_imagination.judges import Judge
 from stages.evaluate_imagination.levers import lever_rows, plot_levers
 from worldenv_core.contract import TaskContract
 from worldenv_core.envs.replay import PairedReplayJob, replay_context
+from worldenv_core.files import write_text_atomic
 from worldenv_core.imagination.pairs import store_pair_frames
 from worldenv_core.imagination.verdict import (as_judged_by, eta_curve, evaluator_metrics, frame_metrics, imagine, judge,
                                                pair, per_task, replay_eta, terminal_reward, verdict_metrics)
@@ -156,9 +157,7 @@ def write_outputs(stage, summary: dict, results: dict, work: Path) -> None:
     out = stage.manifest.root / "evaluate_imagination" / Path(work).name
     out.mkdir(parents=True, exist_ok=True)
     for name, data in (("fidelity.json", summary), ("pairs.json", results)):
-        tmp = out / (name + ".tmp")
-        tmp.write_text(json.dumps(data, indent=1, default=str))
-        stage.add_output(tmp.replace(out / name), kind="report")
+        stage.add_output(write_text_atomic(out / name, json.dumps(data, indent=1, default=str)), kind="report")
     stage.add_output(plot_policies(summary, out / "imagined_vs_real.png"), kind="plot")
     if summary.get("eta_curve"):
         stage.add_output(plot_eta_curve(summary, out / "verdict_vs_eta.png"), kind="plot")

@@ -23,6 +23,7 @@ from stages.evaluate_imagination.evaluation import Variant, pair_variant, summar
 from stages.evaluate_imagination.judges import Judge, judge_pairs
 from stages.report import write_report
 from worldenv_core.data.selection import episode_key
+from worldenv_core.files import write_text_atomic
 from worldenv_core.imagination.env import build_imagined_env
 from worldenv_core.manifest import StageRun, config_hash, sha256_file
 from worldenv_core.models.checkpoint import WEIGHTS, load_checkpoint, read_config
@@ -182,6 +183,4 @@ def _name(checkpoint: str) -> str:
 
 
 def _write_json(path: Path, data) -> None:
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(data))
-    tmp.replace(path)
+    write_text_atomic(path, json.dumps(data))

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from worldenv_core.files import write_text_atomic
 from worldenv_core.manifest import StageRecord
 from worldenv_core.report import markdown_table
 from worldenv_core.viz import figure, save_figure
@@ -92,7 +93,5 @@ def write_summary(folder: Path, runs: list[StageRecord]) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     for name, text in (("sweep_summary.json", json.dumps(rows, indent=1)),
                        ("sweep_summary.md", "\n".join(summary_table(rows)) + "\n")):
-        tmp = folder / (name + ".tmp")
-        tmp.write_text(text)
-        tmp.replace(folder / name)
+        write_text_atomic(folder / name, text)
     return plot_summary(rows, folder / "sweep_summary.png")

@@ -8,7 +8,7 @@ from stages.evaluate.run import run as evaluate
 from stages.train_policy.run import run as train_policy
 from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.manifest import ArtefactError, Manifest
-from stages.evaluate import paired
+from stages.evaluate import keep, paired
 from stages.evaluate.evaluation import success_table
 from worldenv_core.report import ReportContext
 from worldenv_core.stage import ConfigError, compose_config
@@ -139,6 +139,16 @@ def test_a_later_init_state_range_pools_with_the_first_into_one_paired_compariso
     out = paired.main([str(exp), "--a", first_id, later_id, "--b", later_id, first_id, "--json", str(exp / "p.json")])
     assert out["episodes"] == 2 and out["only_a"] == out["only_b"] == 0 and out["p_value"] == 1.0
     assert json.loads((exp / "p.json").read_text())["a_records"] == [first_id, later_id]
+    # output folders (as kept in the repository) name evaluations without their manifest
+    folders = [first["report_dir"], later["report_dir"]]
+    assert paired.main(["-", "--a", *folders, "--b", *folders[::-1]])["episodes"] == 2
+    # kept in the repository: no machine path, and pooled as the experiment's own
+    kept = keep.main([str(exp), first_id, later_id, "--into", str(exp / "kept")])
+    text = (kept[0] / "results.json").read_text()
+    assert str(exp) not in text and json.loads(text)["record"] == first_id
+    assert paired.main(["-", "--a", *map(str, kept), "--b", *folders])["episodes"] == 2
+    with pytest.raises(ConfigError, match="no experiment directory"):
+        paired.main(["-", "--a", first_id, "--b", *folders])
     with pytest.raises(ConfigError, match="init state 0 is in"):
         paired.main([str(exp), "--a", first_id, first_id, "--b", later_id])
     with pytest.raises(ConfigError, match="share no episode"):

@@ -1,0 +1,60 @@
+"""Keep evaluations in the repository: each one's `results.json` and `episodes.json` (every
+episode's outcome, a few tens of KB) under `<into>/<record id>/`, without machine paths, so a
+later paired test (`stages.evaluate.paired - --a results/...`) needs neither the experiment nor
+a re-run of the baseline.
+
+    python -m stages.evaluate.keep outputs/release-goal evaluate-24436df546de ... --into results/libero_goal
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from stages.evaluate.evaluation import checkpoint_name
+from stages.evaluate.paired import read_evaluation
+from worldenv_core.errors import ConfigError
+from worldenv_core.manifest import Manifest
+from worldenv_core.files import write_text_atomic
+
+
+def portable(path: str) -> str:
+    """A checkpoint path as the repository knows it: relative to here when inside, else by name."""
+    try:
+        return str(Path(path).resolve().relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return checkpoint_name(path)
+
+
+def keep(manifest: Manifest, record_id: str, into: Path) -> Path:
+    summary, rows = read_evaluation(manifest, record_id)
+    if summary is None or rows is None:
+        raise ConfigError(f"{record_id}'s results.json or episodes.json is gone from {manifest.root}")
+    summary = {k: v for k, v in summary.items() if k != "report_dir"}
+    summary.update(policy=portable(summary["policy"]), record=record_id)
+    if summary.get("reflector"):
+        summary["reflector"] = portable(summary["reflector"])
+    out = into / record_id
+    out.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(out / "results.json", json.dumps(summary, indent=1) + "\n")
+    # one episode a line: small, and a diff shows which episodes changed
+    write_text_atomic(out / "episodes.json", "[\n" + ",\n".join(json.dumps(r) for r in rows) + "\n]\n")
+    return out
+
+
+def main(argv: list[str] | None = None) -> list[Path]:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("experiment_dir")
+    p.add_argument("records", nargs="+", help="evaluate record ids")
+    p.add_argument("--into", required=True, help="the folder to keep them in, e.g. results/libero_goal")
+    args = p.parse_args(argv)
+    manifest = Manifest(args.experiment_dir)
+    kept = [keep(manifest, r, Path(args.into)) for r in args.records]
+    for path in kept:
+        print(path)
+    return kept
+
+
+if __name__ == "__main__":
+    main()
