@@ -41,9 +41,9 @@ def read_evaluation(manifest: Manifest | None, name: str) -> tuple[dict | None, 
     return ctx.report_json(rec, "results.json"), ctx.report_json(rec, "episodes.json")
 
 
-def pooled_episodes(manifest: Manifest | None, names: list[str]) -> dict[tuple[int, int], bool]:
+def pooled_episodes(manifest: Manifest | None, names: list[str]) -> tuple[dict[tuple[int, int], bool], dict]:
     """{(task id, init state): success} over the evaluations' episodes (record ids or output
-    folders); one termination mode and one policy checkpoint throughout, and no episode twice
+    folders), and their setting (policy, termination, suite): one throughout, and no episode twice
     (which of two runs would count?)."""
     episodes, seen = {}, {}
     for rid in names:
@@ -62,7 +62,7 @@ def pooled_episodes(manifest: Manifest | None, names: list[str]) -> dict[tuple[i
             if key in episodes:
                 raise ConfigError(f"task {key[0]} init state {key[1]} is in {rid} and in an evaluation before it")
             episodes[key] = bool(r["success"])
-    return episodes
+    return episodes, seen
 
 
 def compare(a: dict, b: dict) -> dict:
@@ -80,12 +80,12 @@ def compare(a: dict, b: dict) -> dict:
             **paired_success_test(a, b), "per_task": per_task}
 
 
-def markdown(result: dict) -> str:
+def markdown(result: dict, a: str = "a", b: str = "b") -> str:
     rows = [[t["task_id"], t["n"], f"{100 * t['a']:.0f} %", f"{100 * t['b']:.0f} %", f"{t['only_a']} / {t['only_b']}"]
             for t in result["per_task"]]
     rows.append(["**all**", result["episodes"], f"**{100 * result['a']:.1f} %**", f"**{100 * result['b']:.1f} %**",
                  f"{result['only_a']} / {result['only_b']}"])
-    return "\n".join([*markdown_table(["task", "episodes", "a", "b", "solved only by a / only by b"], rows), "",
+    return "\n".join([*markdown_table(["task", "episodes", a, b, "solved only by the first / only by the second"], rows), "",
                       f"exact McNemar p = {result['p_value']:.4f} over {result['episodes']} paired episodes"]) + "\n"
 
 
@@ -97,9 +97,14 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--json", help="also write the result here")
     args = p.parse_args(argv)
     manifest = None if args.experiment_dir == "-" else Manifest(args.experiment_dir)
-    result = compare(pooled_episodes(manifest, args.a), pooled_episodes(manifest, args.b))
-    result.update(a_records=args.a, b_records=args.b)
-    print(markdown(result), end="")
+    (a, a_setting), (b, b_setting) = pooled_episodes(manifest, args.a), pooled_episodes(manifest, args.b)
+    for what in ("termination", "suite"):
+        if a_setting[what] != b_setting[what]:
+            raise ConfigError(f"the sides ran {what} {a_setting[what]!r} and {b_setting[what]!r}: not the same episodes")
+    result = compare(a, b)
+    result.update(a_records=args.a, b_records=args.b, a_policy=a_setting["policy"], b_policy=b_setting["policy"],
+                  termination=a_setting["termination"], suite=a_setting["suite"])
+    print(markdown(result, a_setting["policy"], b_setting["policy"]), end="")
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=1))
     return result

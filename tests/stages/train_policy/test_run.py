@@ -153,3 +153,8 @@ def test_a_later_init_state_range_pools_with_the_first_into_one_paired_compariso
         paired.main([str(exp), "--a", first_id, first_id, "--b", later_id])
     with pytest.raises(ConfigError, match="share no episode"):
         paired.main([str(exp), "--a", first_id, "--b", later_id])
+    oracle = evaluate(cfg("evaluate", exp, *run[1:], "termination=oracle"))
+    oracle_id = next(r.id for r in reversed(Manifest(exp).find("evaluate", task="tiny", termination="oracle"))
+                     if r.metrics.get("report_dir") == oracle["report_dir"])
+    with pytest.raises(ConfigError, match="not the same episodes"):
+        paired.main([str(exp), "--a", oracle_id, "--b", first_id])
