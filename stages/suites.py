@@ -15,8 +15,8 @@ import sys
 from pathlib import Path
 
 from stages.evaluate.evaluation import own_suite_evaluations
+from stages.evaluate.paired import compare
 from worldenv_core.manifest import Manifest
-from worldenv_core.metrics import paired_success_test
 from worldenv_core.report import POLICIES, TERMINATIONS, ReportContext, markdown_table, newest
 
 
@@ -31,10 +31,9 @@ def suite_row(experiment: str | Path, task: str) -> dict:
         if not all(episodes):
             continue
         sft, post = ({(e["task_id"], e["init_state"]): bool(e["success"]) for e in es} for es in episodes)
-        test = paired_success_test(sft, post)
-        keys = sorted(set(sft) & set(post))
-        row[term] = {"sft": sum(sft[k] for k in keys) / len(keys), "post_trained": sum(post[k] for k in keys) / len(keys),
-                     **test}
+        test = compare(sft, post)
+        row[term] = {"sft": test["a"], "post_trained": test["b"],
+                     **{k: test[k] for k in ("episodes", "only_a", "only_b", "p_value")}}
     return row
 
 

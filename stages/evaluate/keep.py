@@ -15,8 +15,8 @@ from pathlib import Path
 from stages.evaluate.evaluation import checkpoint_name
 from stages.evaluate.paired import read_evaluation
 from worldenv_core.errors import ConfigError
-from worldenv_core.manifest import Manifest
 from worldenv_core.files import write_text_atomic
+from worldenv_core.manifest import Manifest
 
 
 def portable(path: str) -> str:

@@ -20,6 +20,7 @@ import numpy as np
 
 from stages.evaluate.evaluation import checkpoint_name
 from worldenv_core.errors import ConfigError
+from worldenv_core.files import write_text_atomic
 from worldenv_core.manifest import Manifest
 from worldenv_core.metrics import paired_success_test
 from worldenv_core.report import ReportContext, markdown_table
@@ -37,7 +38,7 @@ def read_evaluation(manifest: Manifest | None, name: str) -> tuple[dict | None, 
     rec = manifest.get(name)
     if rec.stage != "evaluate":
         raise ConfigError(f"{name} is a {rec.stage} record, not an evaluation")
-    ctx = ReportContext(manifest, "", manifest.root / "report")
+    ctx = ReportContext(manifest, "", manifest.root / "report", records=[rec])  # no second read of the manifest
     return ctx.report_json(rec, "results.json"), ctx.report_json(rec, "episodes.json")
 
 
@@ -106,7 +107,7 @@ def main(argv: list[str] | None = None) -> dict:
                   termination=a_setting["termination"], suite=a_setting["suite"])
     print(markdown(result, a_setting["policy"], b_setting["policy"]), end="")
     if args.json:
-        Path(args.json).write_text(json.dumps(result, indent=1))
+        write_text_atomic(args.json, json.dumps(result, indent=1))
     return result
 
 

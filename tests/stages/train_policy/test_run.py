@@ -4,11 +4,11 @@ from pathlib import Path
 
 import pytest
 from stages.collect.run import run as collect
+from stages.evaluate import keep, paired
 from stages.evaluate.run import run as evaluate
 from stages.train_policy.run import run as train_policy
 from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.manifest import ArtefactError, Manifest
-from stages.evaluate import keep, paired
 from stages.evaluate.evaluation import success_table
 from worldenv_core.report import ReportContext
 from worldenv_core.stage import ConfigError, compose_config
