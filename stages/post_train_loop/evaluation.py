@@ -201,11 +201,12 @@ def plot_routes(ctx: ReportContext, runs: list[StageRecord], path: Path) -> Path
     return save_figure(fig, path)
 
 
-def plot_pack_runs(histories: dict[str, str | Path], path: str | Path, title: str = "") -> Path:
+def plot_pack_runs(histories: dict[str, str | Path], path: str | Path, title: str = "", paired: bool = True) -> Path:
     """LOOP runs side by side (`from_pack`'s history.json, or a work dir's training.json), by
     iteration: imagined success (reflector > eta), groups kept and mean reward, each raw (faint)
     and as a 9-iteration running mean. Runs on one pack with one seed draw the same contexts at the
-    same iteration, so their curves share a shape."""
+    same iteration, so their curves share a shape. `paired`: runs 1-2 solid, 3-4 dashed in the same
+    two colours (two settings x two variants); otherwise a colour a run (seeds of one setting)."""
     import json
 
     from worldenv_core.viz import figure, save_figure
@@ -216,7 +217,7 @@ def plot_pack_runs(histories: dict[str, str | Path], path: str | Path, title: st
     for i, (label, file) in enumerate(histories.items()):
         steps = [h for h in json.loads(Path(file).read_text()) if "mean_reward" in h]
         it = np.array([h["step"] for h in steps])
-        colour, style = f"C{i % 2}", "-" if i < 2 else "--"
+        colour, style = (f"C{i % 2}", "-" if i < 2 else "--") if paired else (f"C{i}", "-")
         for ax, (key, name) in zip(axes, panels):
             v = np.array([h[key] for h in steps])
             k = min(9, len(v))
