@@ -31,8 +31,11 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip check
 	touch $(STAMP)
 
+# Test files run in parallel (pytest-xdist), each whole on one worker so that its module fixtures
+# (a tiny experiment's models) are built once: TEST_WORKERS=0 runs them in this process.
+TEST_WORKERS ?= 2
 test: setup
-	$(PY) -m pytest -q -m "not fault_full" tests
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile -m "not fault_full" tests
 
 # The fault suite alone (also part of `make test`), with its matrix: case, outcome, seconds.
 faults: setup
