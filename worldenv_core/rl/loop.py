@@ -149,34 +149,42 @@ def select(batch: RolloutBatch, keep: torch.Tensor) -> RolloutBatch:
 
 
 def ppo_update(policy, optimizer, batch: RolloutBatch, epochs: int, epsilon: float, minibatch: int,
-               generator: torch.Generator | None = None) -> dict:
+               generator: torch.Generator | None = None, target_kl: float | None = None) -> dict:
     """K epochs of eq. 5 over the batch's rollouts in minibatches of whole rollouts; the loss of
-    each minibatch is normalised by its summed trajectory lengths."""
+    each minibatch is normalised by its summed trajectory lengths. `target_kl`: the iteration's
+    remaining steps are skipped once a minibatch's approximate KL from the behaviour policy
+    exceeds 1.5 x target_kl, that minibatch's own step included (as Stable-Baselines3's PPO does):
+    the clip bounds each ratio, not how far many steps together take the policy, and Adam's first
+    steps move every parameter by about the learning rate. `ppo_steps` counts the steps taken."""
     from worldenv_core.models.laplace import laplace_log_prob
 
     policy.train()
     r, c = batch.mask.shape[:2]
     camera = policy.cameras[0]
     stats: dict[str, list[float]] = {"loss": [], "clip_fraction": [], "approx_kl": [], "ratio_mean": []}
-    for _ in range(epochs):
-        for idx in torch.randperm(r, generator=generator).split(minibatch):
-            live = batch.mask[idx, :, 0] > 0  # (m, C): chunks the rollout really took
-            rows, cols = live.nonzero(as_tuple=True)
-            mu, beta = policy({camera: batch.frames[idx][rows, cols]}, batch.proprio[idx][rows, cols],
-                              batch.instruction[idx][rows])
-            logp_new = torch.zeros_like(batch.logp_old[idx])
-            logp_new[rows, cols] = laplace_log_prob(batch.actions[idx][rows, cols], mu, beta)
-            loss, s = ppo_loss(logp_new.flatten(1), batch.logp_old[idx].flatten(1), batch.advantages[idx],
-                               batch.mask[idx].flatten(1), epsilon)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
-            optimizer.step()
-            stats["loss"].append(loss.item())
-            for k, v in s.items():
-                stats[k].append(v)
+    steps = 0
+    order = [idx for _ in range(epochs) for idx in torch.randperm(r, generator=generator).split(minibatch)]
+    for idx in order:
+        live = batch.mask[idx, :, 0] > 0  # (m, C): chunks the rollout really took
+        rows, cols = live.nonzero(as_tuple=True)
+        mu, beta = policy({camera: batch.frames[idx][rows, cols]}, batch.proprio[idx][rows, cols],
+                          batch.instruction[idx][rows])
+        logp_new = torch.zeros_like(batch.logp_old[idx])
+        logp_new[rows, cols] = laplace_log_prob(batch.actions[idx][rows, cols], mu, beta)
+        loss, s = ppo_loss(logp_new.flatten(1), batch.logp_old[idx].flatten(1), batch.advantages[idx],
+                           batch.mask[idx].flatten(1), epsilon)
+        stats["loss"].append(loss.item())
+        for k, v in s.items():
+            stats[k].append(v)
+        if target_kl is not None and s["approx_kl"] > 1.5 * target_kl:
+            break
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
+        optimizer.step()
+        steps += 1
     policy.eval()
-    return {k: sum(v) / len(v) for k, v in stats.items()}
+    return {**{k: sum(v) / len(v) for k, v in stats.items()}, "ppo_steps": steps}
 
 
 def policy_param_groups(policy, lr_backbone: float, lr_heads: float) -> list[dict]:

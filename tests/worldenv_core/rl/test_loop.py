@@ -106,6 +106,27 @@ def test_a_tiny_loop_improves_a_synthetic_reward():
     assert sum(rewards[-3:]) / 3 > sum(rewards[:3]) / 3 + 0.15, rewards
 
 
+def test_target_kl_stops_an_iterations_ppo_steps_once_the_policy_has_moved_that_far():
+    """Without a target every epoch x minibatch step is taken; with one, the steps stop at the
+    first minibatch whose KL from the behaviour policy exceeds 1.5 x target (the first minibatch
+    is always taken: the policy has not moved yet), and the policy moves less."""
+    import copy
+
+    from worldenv_core.rl.loop import collect_rollouts, policy_param_groups, ppo_update
+
+    policy, contexts, encoder = _policy_and_contexts()
+    batch = collect_rollouts(policy, ActionRewardEnv(), contexts, 8, encoder, torch.Generator().manual_seed(0))
+    moved, steps = {}, {}
+    for target in (None, 1e-4):
+        p = copy.deepcopy(policy)
+        steps[target] = ppo_update(p, torch.optim.Adam(policy_param_groups(p, 1e-2, 1e-1)), batch, epochs=3,
+                                   epsilon=0.1, minibatch=4, generator=torch.Generator().manual_seed(0),
+                                   target_kl=target)["ppo_steps"]
+        moved[target] = sum(float((a - b).norm()) for a, b in zip(p.parameters(), policy.parameters()))
+    assert steps[None] == 12 and 1 <= steps[1e-4] < 12, steps  # 16 rollouts / 4 a minibatch x 3 epochs
+    assert moved[1e-4] < moved[None], moved
+
+
 def test_rollouts_drawn_per_context_are_the_same_however_the_contexts_are_split():
     """What sharding imagined rollouts over ranks relies on: a context's N rollouts depend on its
     own generator, not on which contexts share its batch; the parts merge back into the batch."""
