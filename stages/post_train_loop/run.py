@@ -76,7 +76,7 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(str(e)) from None
     if not cfg.rl.epsilon > 0:
         raise ConfigError(f"rl.epsilon (the PPO clip) must be > 0, got {cfg.rl.epsilon}")
-    if cfg.rl.get("target_kl") is not None and not cfg.rl.target_kl > 0:
+    if cfg.rl.target_kl is not None and not cfg.rl.target_kl > 0:
         raise ConfigError(f"rl.target_kl must be > 0 or null (no limit), got {cfg.rl.target_kl}")
     if not (cfg.rl.lr_backbone > 0 and cfg.rl.lr_heads > 0):
         raise ConfigError("rl.lr_backbone and rl.lr_heads must be > 0")

@@ -91,7 +91,7 @@ def rl_phase(policy, optimizer, collect: Collect, n_contexts: int, rl, seed: int
         batch = merge(distributed.gather(collect(behaviour, [picks[i] for i in mine], [streams[i] for i in mine])))
         keep = informative_groups(batch, rl.n_rollouts) if rl.filter_groups else torch.ones_like(batch.by_reflector)
         stats = (ppo_update(policy, optimizer, select(batch, keep), rl.ppo_epochs, rl.epsilon, rl.minibatch, generator=g,
-                            target_kl=rl.get("target_kl"))
+                            target_kl=rl.target_kl)
                  if keep.any() else {})
         distributed.broadcast_model(policy)  # the replicas made the same update; float noise must not make them drift
         return {"mean_reward": float(batch.rewards.mean()), "reflector_success_rate": float(batch.by_reflector.float().mean()),

@@ -158,6 +158,8 @@ def ppo_update(policy, optimizer, batch: RolloutBatch, epochs: int, epsilon: flo
     steps move every parameter by about the learning rate. `ppo_steps` counts the steps taken."""
     from worldenv_core.models.laplace import laplace_log_prob
 
+    if target_kl is not None and not target_kl > 0:  # as ppo_loss checks epsilon: from_pack reaches here unvalidated
+        raise ValueError(f"target_kl must be > 0 or None (no limit), got {target_kl}")
     policy.train()
     r, c = batch.mask.shape[:2]
     camera = policy.cameras[0]
