@@ -11,6 +11,11 @@ and scale), overridden as `key=value`.
 `--minutes` sizes the run from a timing of a few steps on a copy of the model (recorded in the work
 dir, so a re-run resumes to the same total); `--snapshots K` also saves the EMA model at K-1 equal
 fractions of the run (`snapshot_<step>/`), a compute curve from one run.
+
+The model-size and data curves of issue 22: `--width W` trains a *fresh* flow network of width W on
+the same autoencoder (its latent scales and kinematics kept, so the pack still serves it; start it with
+`rollout.chunks=0`, teacher forcing, then go on open loop from its result), and `--every N` trains on
+every N-th episode of the pack only.
 """
 
 from __future__ import annotations
@@ -54,6 +59,8 @@ def main(argv: list[str] | None = None) -> Path:
     how_long.add_argument("--steps", type=int)
     how_long.add_argument("--minutes", type=float, help="train for about this long (timed on this machine)")
     p.add_argument("--snapshots", type=int, default=1, help="K: save the EMA model at K equal fractions of the run")
+    p.add_argument("--width", type=int, help="a fresh flow network of this width on the model's autoencoder")
+    p.add_argument("--every", type=int, default=1, help="N: train on every N-th episode of the pack")
     p.add_argument("overrides", nargs="*", help="train_worldsim settings, key=value")
     args = p.parse_intermixed_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
@@ -63,9 +70,15 @@ def main(argv: list[str] | None = None) -> Path:
     device = pick_device(cfg.device)
     torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True
 
+    if args.every < 1 or (args.width is not None and args.width < 8):
+        raise SystemExit(f"--every must be >= 1 (got {args.every}) and --width >= 8 (got {args.width})")
     base, base_meta = load_checkpoint(args.model, "worldsim")
     latents, episodes, pack_meta = read_pack(args.pack, args.model)
+    latents, episodes = latents[::args.every], episodes[::args.every]
     cameras = {int(t): PinholeCamera.from_dict(c) for t, c in base_meta["cameras"].items()}
+    model_cfg = read_config(args.model)["model"]
+    if args.width is not None:
+        model_cfg, base = fresh_velocity(base, model_cfg, args.width, cfg.seed)
     model = copy.deepcopy(base).to(device)
     ema = copy.deepcopy(model).requires_grad_(False)
     optimizer = torch.optim.AdamW(model.velocity.parameters(), lr=cfg.flow.lr)
@@ -80,11 +93,11 @@ def main(argv: list[str] | None = None) -> Path:
     steps = planned_total(work, args.steps, args.minutes, time_steps, args.overrides)
     cfg.rollout.steps = steps
 
-    prior = int(base_meta.get("rollout_steps") or 0)
-    model_cfg = read_config(args.model)["model"]
+    prior = 0 if args.width is not None else int(base_meta.get("rollout_steps") or 0)
     meta = {**base_meta, "rollout_steps": prior + steps, "init_from_step": base_meta.get("step"),
             "rollout_chunks": int(cfg.rollout.chunks), "rollout_batch_size": int(cfg.rollout.batch_size),
             "trained_from": {"latent_pack": pack_meta["encoder_sha256"][:12], "episodes": len(episodes),
+                             "fresh_width": args.width, "every": args.every,
                              "device": torch.cuda.get_device_name() if device.type == "cuda" else str(device)}}
     trainer = Trainer(work, model, {"flow": optimizer}, model_config=model_cfg, meta=meta, desc="open-loop (pack)",
                       log_every=cfg.log_every, checkpoint_every=cfg.checkpoint_every,
@@ -108,6 +121,20 @@ def main(argv: list[str] | None = None) -> Path:
     trainer.close_off("losses.png", f"train_worldsim from a latent pack {base_meta['task']}")
     log.info("saved %s (%d steps, %.0f s this sitting)", final, steps, trainer.wall_s)
     return final
+
+
+def fresh_velocity(base, model_cfg: dict, width: int, seed: int):
+    """-> (config, model): `base` with a newly initialised flow network of `width`; the autoencoder and the
+    latent and delta scales are base's (the flow works in its latent space, which the pack holds)."""
+    from hydra.utils import instantiate
+
+    cfg = {**model_cfg, "width": int(width)}
+    torch.manual_seed(seed)
+    model = instantiate(cfg, _convert_="all")
+    kept = {k: v for k, v in base.state_dict().items() if not k.startswith("velocity.")}
+    missing, unexpected = model.load_state_dict(kept, strict=False)
+    assert not unexpected and all(k.startswith("velocity.") for k in missing), (missing, unexpected)
+    return cfg, model
 
 
 if __name__ == "__main__":

@@ -80,14 +80,16 @@ def rollout_phase(model, ema, optimizer, chunks_of, cameras, cfg, device) -> Pha
         g = torch.Generator().manual_seed(step_seed(cfg.seed + 2, done))
         depth = int(torch.randint(ahead, (1,), generator=g))
         k, n = model.chunk, (depth + 1) * model.chunk
-        past = b["past"].to(device) / model.latent_scale
         maps = _maps(b["proprio"][:, :n].to(device), b["task_id"], cameras, model.map_size)
         actions = b["actions"][:, :n].float().to(device)
-        history = past
-        for c in range(depth):  # no_grad inside next_chunk: the memory is an input, as at inference
-            history = torch.cat([history, model.next_chunk(history, past[:, -1], maps[:, c * k:(c + 1) * k],
-                                                           actions[:, c * k:(c + 1) * k])], dim=1)
-        memory = model.memory(history)
+        if "past" not in b:  # rollout.chunks = 0: teacher forcing alone (a fresh network's first phase)
+            memory = b["memory"].to(device) / model.latent_scale
+        else:
+            history = past = b["past"].to(device) / model.latent_scale
+            for c in range(depth):  # no_grad inside next_chunk: the memory is an input, as at inference
+                history = torch.cat([history, model.next_chunk(history, past[:, -1], maps[:, c * k:(c + 1) * k],
+                                                               actions[:, c * k:(c + 1) * k])], dim=1)
+            memory = model.memory(history)
         memory = memory + cfg.flow.memory_noise * torch.randn_like(memory)
         last = slice(depth * k, n)
         loss = model.flow_loss(memory, maps[:, last], b["target"][:, last].to(device) / model.latent_scale,

@@ -162,6 +162,35 @@ def test_latent_pack_trains_open_loop_off_the_episodes_and_refuses_another_autoe
         from_pack.main([str(pack), str(other), "--work", str(tmp_path / "w2"), "--steps", "1"])
 
 
+def test_from_pack_trains_a_fresh_flow_network_of_another_width_on_the_same_autoencoder(demo_experiment, contract,
+                                                                                        tmp_path):
+    """Issue 22's model-size curve: `--width` swaps in a new flow network, keeps the latent space."""
+    import torch
+
+    from stages.train_worldsim import from_pack, latent_pack
+    from worldenv_core.models.checkpoint import read_config
+
+    exp = demo_experiment
+    train_worldsim(cfg(exp, "expert_only=true"))  # (resumes the finished run of the tests above)
+    m = Manifest(exp)
+    base = next(p for p in m.resolve(m.latest("train_worldsim", task="tiny", data="expert"))
+                if p.name == "model.safetensors").parent
+    start, _ = load_checkpoint(base, "worldsim", contract())
+    pack = latent_pack.main([str(base), str(exp / "data" / "*" / "*" / "*" / "*.mcap"), "--out", str(tmp_path / "p.st")])
+    width = start.velocity.width // 2
+    final = from_pack.main([str(pack), str(base), "--work", str(tmp_path / "w"), "--steps", "2", "--width", str(width),
+                            "rollout.chunks=0", "rollout.batch_size=4"])
+    model, meta = load_checkpoint(final, "worldsim", contract())
+    assert read_config(final)["model"]["width"] == model.velocity.width == width
+    assert meta["rollout_steps"] == 2 and meta["trained_from"]["fresh_width"] == width
+    fresh = model.state_dict()
+    assert all(torch.equal(v, fresh[n]) for n, v in start.state_dict().items() if not n.startswith("velocity."))
+    assert sum(p.numel() for p in model.velocity.parameters()) < sum(p.numel() for p in start.velocity.parameters())
+    assert latent_pack.read_pack(pack, final)  # the same autoencoder: the pack serves the new model too
+    with pytest.raises(SystemExit, match="--every"):
+        from_pack.main([str(pack), str(base), "--work", str(tmp_path / "w2"), "--steps", "1", "--every", "0"])
+
+
 def test_refit_kinematics_keeps_the_weights_and_scores_the_fit_on_held_out_episodes(demo_experiment, contract,
                                                                                    tmp_path):
     from stages.train_worldsim import refit_kinematics
