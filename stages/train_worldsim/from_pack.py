@@ -94,7 +94,7 @@ def main(argv: list[str] | None = None) -> Path:
     cfg.rollout.steps = steps
 
     prior = 0 if args.width is not None else int(base_meta.get("rollout_steps") or 0)
-    meta = {**base_meta, "rollout_steps": prior + steps, "init_from_step": base_meta.get("step"),
+    meta = {**base_meta, "rollout_steps": prior + steps, "init_from_step": None if args.width is not None else base_meta.get("step"),
             "rollout_chunks": int(cfg.rollout.chunks), "rollout_batch_size": int(cfg.rollout.batch_size),
             "trained_from": {"latent_pack": pack_meta["encoder_sha256"][:12], "episodes": len(episodes),
                              "fresh_width": args.width, "every": args.every,
