@@ -89,6 +89,29 @@ def binary_metrics(scores, labels, threshold: float) -> dict:
             "auroc": auroc(scores, labels), "tp": tp, "fp": fp, "fn": fn, "tn": tn, "n": int(len(labels))}
 
 
+def cluster_bootstrap_ci(statistic, clusters, n_boot: int = 2000, level: float = 0.95, seed: int = 0) -> list[float]:
+    """[low, high] percentile interval of `statistic(rows)` over resamples of whole clusters with
+    replacement (`clusters`: a cluster label per row). Rows of one cluster (the rollouts of one
+    context) are not independent draws, so resampling rows alone would understate the spread.
+    Resamples where the statistic is undefined (nan: e.g. one class only) are dropped; [nan, nan]
+    when fewer than half remain."""
+    import numpy as np
+
+    labels = np.asarray(clusters)
+    groups = [np.flatnonzero(labels == c) for c in np.unique(labels)]
+    rng = np.random.default_rng(seed)
+    values = []
+    for _ in range(n_boot):
+        rows = np.concatenate([groups[i] for i in rng.integers(len(groups), size=len(groups))])
+        v = statistic(rows)
+        if v == v:
+            values.append(v)
+    if len(values) < n_boot / 2:
+        return [float("nan"), float("nan")]
+    tail = 100 * (1 - level) / 2
+    return [float(np.percentile(values, tail)), float(np.percentile(values, 100 - tail))]
+
+
 def paired_success_test(a: dict, b: dict) -> dict:
     """Two policies' successes on the same episodes ({episode key: bool}, e.g. (task, init state)):
     how many only `a` solved, how many only `b` solved, and the exact two-sided McNemar p-value

@@ -17,3 +17,20 @@ def test_paired_success_test_without_disagreement_is_uninformative():
     assert paired_success_test(same, same) == {"episodes": 10, "only_a": 0, "only_b": 0, "p_value": 1.0}
     balanced = paired_success_test({0: True, 1: False}, {0: False, 1: True})
     assert balanced["p_value"] == 1.0
+
+
+def test_cluster_bootstrap_resamples_whole_clusters():
+    import numpy as np
+
+    from worldenv_core.metrics import cluster_bootstrap_ci
+
+    values = np.array([0.0, 0.0, 1.0, 1.0])
+    # two clusters that each agree within: a resample's mean is 0, 0.5 or 1, never 0.25
+    low, high = cluster_bootstrap_ci(lambda i: float(values[i].mean()), ["a", "a", "b", "b"], n_boot=400)
+    assert low == 0.0 and high == 1.0
+    means = []
+    cluster_bootstrap_ci(lambda i: means.append(float(values[i].mean())) or 0.0, ["a", "a", "b", "b"], n_boot=200)
+    assert set(means) == {0.0, 0.5, 1.0}  # whole clusters drawn; a row-level resample would also give 0.25, 0.75
+    # one cluster per row of many identical rows: no spread; undefined statistics give nan
+    assert cluster_bootstrap_ci(lambda i: 1.0, list(range(20))) == [1.0, 1.0]
+    assert np.isnan(cluster_bootstrap_ci(lambda i: float("nan"), [0, 1])).all()

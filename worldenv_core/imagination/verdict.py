@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from worldenv_core.imagination.env import Context, ImaginedEnv, StepResult
-from worldenv_core.metrics import binary_metrics, psnr, spearman, ssim
+from worldenv_core.metrics import binary_metrics, cluster_bootstrap_ci, psnr, spearman, ssim
 
 
 @dataclass
@@ -162,7 +162,17 @@ def verdict_metrics(rows: list[dict], eta: float) -> dict:
             "real_frames_auroc": on_real["auroc"], "real_frames_f1": on_real["f1"],
             "real_frames_precision": on_real["precision"], "real_frames_recall": on_real["recall"],
             **{f"real_stop_{k}": own[k] for k in ("auroc", "f1", "precision", "recall")},
-            **mixed_groups(rows, said, real)}
+            **mixed_groups(rows, said, real), **intervals([j["imagined_reward"] for j in judged], real, eta, rows)}
+
+
+def intervals(reward, real: np.ndarray, eta: float, rows: list[dict]) -> dict:
+    """95 % intervals of AUROC and F1, resampling contexts (a context's rollouts share its start): with
+    80 pairs from 20 contexts, what separates two world models and what is a new draw of rollouts."""
+    reward = np.asarray(reward, dtype=float)
+    contexts = [str((r.get("policy"), r.get("context_kind"), r.get("start") or r["context"])) for r in rows]
+    on = lambda name: cluster_bootstrap_ci(  # noqa: E731
+        lambda i: binary_metrics(reward[i], real[i], eta)[name], contexts)
+    return {"auroc_ci95": on("auroc"), "f1_ci95": on("f1")}
 
 
 def mixed_groups(rows: list[dict], said: np.ndarray, real: np.ndarray) -> dict:

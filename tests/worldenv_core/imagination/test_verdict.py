@@ -76,6 +76,13 @@ def test_verdict_metrics_count_hacks_misses_and_timing():
     assert m["real_stop_f1"] == 1.0 and m["real_stop_auroc"] == 1.0
     assert per_task(rows, 0.5) == {0: {"rollouts": 5, "imagined_success": 0.4, "real_success": 0.4}}
     assert verdict_metrics([], 0.5) == {"rollouts": 0}
+    assert m["auroc_ci95"] == [m["auroc"]] * 2  # one context: nothing to resample
+    for i, r in enumerate(rows):
+        r["context"] = i
+    m = verdict_metrics(rows, eta=0.5)
+    low, high = m["auroc_ci95"]
+    assert low <= m["auroc"] <= high and 0 <= low < high <= 1  # five contexts of one rollout each: wide
+    assert m["f1_ci95"][0] <= m["f1"] <= m["f1_ci95"][1]
 
 
 def test_mixed_groups_count_the_contexts_whose_rollouts_disagree_imagined_and_real():
