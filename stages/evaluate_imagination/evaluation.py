@@ -145,6 +145,12 @@ def summarise(results: dict, names: list[str], eta: float, horizons: list[int], 
                                 "evaluator_paired": judged_evaluator(results, names, j)} for j in judges if rows}}
 
 
+def _ci(m: dict, name: str) -> str:
+    """' [low, high]': the 95 % interval over contexts, where the run has one (runs before it did not)."""
+    ci = m.get(f"{name}_ci95")
+    return f" [{_num(ci[0], 2)}, {_num(ci[1], 2)}]" if ci else ""
+
+
 def judged_evaluator(results: dict, names: list[str], j: Judge) -> dict:
     """The policy evaluator on paired replays as further reflector `j` judges them: each paired
     policy's imagined success against the real success of the same actions (by j's stops)."""
@@ -259,8 +265,8 @@ def section(ctx: ReportContext, limit: int = 8) -> list[str]:
         judgements += [(r.tags.get("worldsim"), f"{name}\n{pairing}", m)
                        for name, m in [(r.tags.get("reflector"), h), *s.get("judges", {}).items()]]
         rows.append([r.tags.get("worldsim"), r.tags.get("reflector"), _num(s["eta"], 2), _sampler(r.tags),
-                     s["headline_policy"], h["rollouts"], _num(h["auroc"]) + _mark("auroc", h["auroc"]),
-                     _num(h["f1"]) + _mark("f1", h["f1"]), _pct(h["hack_rate"]) + _mark("hack_rate", h["hack_rate"]),
+                     s["headline_policy"], h["rollouts"], _num(h["auroc"]) + _mark("auroc", h["auroc"]) + _ci(h, "auroc"),
+                     _num(h["f1"]) + _mark("f1", h["f1"]) + _ci(h, "f1"), _pct(h["hack_rate"]) + _mark("hack_rate", h["hack_rate"]),
                      f"{_pct(h['imagined_success'])} / {_pct(h['real_success'])}",
                      _pct(h["max_task_gap"]) + _mark("max_task_gap", h["max_task_gap"]), _num(h["timing_error_median"], 0),
                      _real_frames(h), _replay_eta(s.get("replay_eta", {})),
@@ -269,6 +275,7 @@ def section(ctx: ReportContext, limit: int = 8) -> list[str]:
                      s["real_episodes"]])
     lines = ["The imagined verdict (world model + reflector) against the real outcome of the same actions "
              "(`make fidelity`; contexts no model trained on). AUROC: the imagined reward against real success; "
+             "[low, high]: 95 % intervals resampling whole contexts (a context's rollouts share its start); "
              "F1 and hack rate (imagined successes that fail in reality) at eta; real-frame F1: the reflector on the "
              "real frames of the same actions, asked at the imagined verdict's check and stopping them on its own "
              "(low: the reflector is wrong; high while F1 is low: the world model is); "
