@@ -107,6 +107,14 @@ def test_open_loop_fine_tuning_keeps_the_latent_space_and_held_out_episodes_and_
                                                                    abs=1e-6)
 
 
+def expert_only_model(exp):
+    """The expert-only world model's checkpoint folder (its run resumes, finished, from the tests above)."""
+    train_worldsim(cfg(exp, "expert_only=true"))
+    m = Manifest(exp)
+    return next(p for p in m.resolve(m.latest("train_worldsim", task="tiny", data="expert"))
+                if p.name == "model.safetensors").parent
+
+
 def test_latent_pack_trains_open_loop_off_the_episodes_and_refuses_another_autoencoder(demo_experiment, contract,
                                                                                           tmp_path):
     """The GPU route of phase 3: the training episodes packed as the model's latents, trained on with
@@ -120,10 +128,7 @@ def test_latent_pack_trains_open_loop_off_the_episodes_and_refuses_another_autoe
     from worldenv_core.models.checkpoint import CheckpointError
 
     exp = demo_experiment
-    train_worldsim(cfg(exp, "expert_only=true"))  # (resumes the finished run of the tests above)
-    m = Manifest(exp)
-    base = next(p for p in m.resolve(m.latest("train_worldsim", task="tiny", data="expert"))
-                if p.name == "model.safetensors").parent
+    base = expert_only_model(exp)
     start, start_meta = load_checkpoint(base, "worldsim", contract())
     pack = latent_pack.main([str(base), str(exp / "data" / "*" / "*" / "*" / "*.mcap"), "--out", str(tmp_path / "pack.st")])
     latents, episodes, meta = latent_pack.read_pack(pack, base)
@@ -171,10 +176,7 @@ def test_from_pack_trains_a_fresh_flow_network_of_another_width_on_the_same_auto
     from worldenv_core.models.checkpoint import read_config
 
     exp = demo_experiment
-    train_worldsim(cfg(exp, "expert_only=true"))  # (resumes the finished run of the tests above)
-    m = Manifest(exp)
-    base = next(p for p in m.resolve(m.latest("train_worldsim", task="tiny", data="expert"))
-                if p.name == "model.safetensors").parent
+    base = expert_only_model(exp)
     start, _ = load_checkpoint(base, "worldsim", contract())
     pack = latent_pack.main([str(base), str(exp / "data" / "*" / "*" / "*" / "*.mcap"), "--out", str(tmp_path / "p.st")])
     width = start.velocity.width // 2
@@ -197,10 +199,7 @@ def test_refit_kinematics_keeps_the_weights_and_scores_the_fit_on_held_out_episo
     from worldenv_core.kinematics.next_state import NextStateModel
 
     exp = demo_experiment
-    train_worldsim(cfg(exp, "expert_only=true"))  # (resumes the finished run of the tests above)
-    m = Manifest(exp)
-    base = next(p for p in m.resolve(m.latest("train_worldsim", task="tiny", data="expert"))
-                if p.name == "model.safetensors").parent
+    base = expert_only_model(exp)
     episodes = str(exp / "data" / "*" / "*" / "*" / "*.mcap")
     out = refit_kinematics.main([str(base), episodes, "--out", str(tmp_path / "refit")])
     assert (tmp_path / "refit" / "model.safetensors").read_bytes() == (base / "model.safetensors").read_bytes()
