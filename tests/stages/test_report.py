@@ -96,7 +96,9 @@ def test_each_stage_renders_its_own_section(tmp_path):
     text = "\n".join(collect.section(ctx))
     assert "| policy | tiny | 3 | 120 | 33 % |" in text
     text = "\n".join(evaluate_imagination.section(ctx))  # pairs: hit, hack, miss, agreed failure
-    assert "| w1 | r1 | 0.50 | default, default | sft@1 | 4 | 0.750 (target >= 0.9) | 0.500 (target >= 0.8) | 50.0 % (target <= 0.1) |" in text
+    # with each figure its 95 % interval over the 4 contexts (one rollout each: as wide as it gets)
+    assert ("| w1 | r1 | 0.50 | default, default | sft@1 | 4 | 0.750 (target >= 0.9) [0.00, 1.00] | "
+            "0.500 (target >= 0.8) [0.00, 1.00] | 50.0 % (target <= 0.1) |") in text
     assert "| 50.0 % / 50.0 % | 0.0 % (met) | 0 | 0.000 / 0.000 |" in text and "| sft@3 | 100.0 % |  | 50.0 % | 0.0 % |" in text
 
 
