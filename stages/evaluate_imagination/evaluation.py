@@ -104,7 +104,7 @@ def max_task_gap(rows: list[dict], eta: float) -> float | None:
 
 def judged(rows: list[dict], eta: float) -> dict:
     """A further reflector's verdicts on the pairs: agreement at its eta, worst task, eta chosen on replays."""
-    return {"eta": eta, **verdict_metrics(rows, eta), "max_task_gap": max_task_gap(rows, eta), "replay_eta": replay_eta(rows)}
+    return {"eta": eta, **verdict_metrics(rows, eta, intervals=True), "max_task_gap": max_task_gap(rows, eta), "replay_eta": replay_eta(rows)}
 
 
 def summarise(results: dict, names: list[str], eta: float, horizons: list[int], judges: tuple[Judge, ...] = ()) -> dict:
@@ -113,7 +113,7 @@ def summarise(results: dict, names: list[str], eta: float, horizons: list[int], 
     the headline's pairs."""
     per_policy = {}
     for name in names:
-        m = verdict_metrics(results[name]["rows"], eta)
+        m = verdict_metrics(results[name]["rows"], eta, intervals=True)
         closed = results[name]["closed_loop"]
         per_policy[name] = {**m, "imagined_success": results[name].get("imagined_success", m.get("imagined_success")),
                             "imagined_reward": results[name].get("imagined_reward"),

@@ -77,7 +77,8 @@ def main(argv: list[str] | None = None) -> Path:
     latents, episodes = latents[::args.every], episodes[::args.every]
     cameras = {int(t): PinholeCamera.from_dict(c) for t, c in base_meta["cameras"].items()}
     model_cfg = read_config(args.model)["model"]
-    if args.width is not None:
+    fresh = args.width is not None  # a new flow network: its steps start from zero, from no earlier step
+    if fresh:
         model_cfg, base = fresh_velocity(base, model_cfg, args.width, cfg.seed)
     model = copy.deepcopy(base).to(device)
     ema = copy.deepcopy(model).requires_grad_(False)
@@ -93,8 +94,8 @@ def main(argv: list[str] | None = None) -> Path:
     steps = planned_total(work, args.steps, args.minutes, time_steps, args.overrides)
     cfg.rollout.steps = steps
 
-    prior = 0 if args.width is not None else int(base_meta.get("rollout_steps") or 0)
-    meta = {**base_meta, "rollout_steps": prior + steps, "init_from_step": None if args.width is not None else base_meta.get("step"),
+    prior = 0 if fresh else int(base_meta.get("rollout_steps") or 0)
+    meta = {**base_meta, "rollout_steps": prior + steps, "init_from_step": None if fresh else base_meta.get("step"),
             "rollout_chunks": int(cfg.rollout.chunks), "rollout_batch_size": int(cfg.rollout.batch_size),
             "trained_from": {"latent_pack": pack_meta["encoder_sha256"][:12], "episodes": len(episodes),
                              "fresh_width": args.width, "every": args.every,

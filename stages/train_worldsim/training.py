@@ -82,7 +82,7 @@ def rollout_phase(model, ema, optimizer, chunks_of, cameras, cfg, device) -> Pha
         k, n = model.chunk, (depth + 1) * model.chunk
         maps = _maps(b["proprio"][:, :n].to(device), b["task_id"], cameras, model.map_size)
         actions = b["actions"][:, :n].float().to(device)
-        if "past" not in b:  # rollout.chunks = 0: teacher forcing alone (a fresh network's first phase)
+        if depth == 0:  # teacher forcing: the recorded memory (items carry no "past" when rollout.chunks = 0)
             memory = b["memory"].to(device) / model.latent_scale
         else:
             history = past = b["past"].to(device) / model.latent_scale

@@ -139,8 +139,9 @@ def judge(row: dict, eta: float) -> dict:
             "real_first_success": first, "real_reward": real[min(at, len(real) - 1)] if real else float("nan")}
 
 
-def verdict_metrics(rows: list[dict], eta: float) -> dict:
-    """How well the imagined verdict at `eta` predicts the real outcome of the same actions."""
+def verdict_metrics(rows: list[dict], eta: float, intervals: bool = False) -> dict:
+    """How well the imagined verdict at `eta` predicts the real outcome of the same actions; `intervals`
+    adds the 95 % intervals of AUROC and F1 (a bootstrap: for reported figures, not inside eta sweeps)."""
     if not rows:
         return {"rollouts": 0}
     judged = [judge(r, eta) for r in rows]
@@ -162,14 +163,20 @@ def verdict_metrics(rows: list[dict], eta: float) -> dict:
             "real_frames_auroc": on_real["auroc"], "real_frames_f1": on_real["f1"],
             "real_frames_precision": on_real["precision"], "real_frames_recall": on_real["recall"],
             **{f"real_stop_{k}": own[k] for k in ("auroc", "f1", "precision", "recall")},
-            **mixed_groups(rows, said, real), **intervals([j["imagined_reward"] for j in judged], real, eta, rows)}
+            **mixed_groups(rows, said, real),
+            **(context_intervals([j["imagined_reward"] for j in judged], real, eta, rows) if intervals else {})}
 
 
-def intervals(reward, real: np.ndarray, eta: float, rows: list[dict]) -> dict:
+def context_key(row: dict) -> tuple:
+    """Which context a paired rollout started from: its group for RLOO and for the bootstrap."""
+    return row.get("policy"), row.get("context_kind"), row.get("start") or row["context"]
+
+
+def context_intervals(reward, real: np.ndarray, eta: float, rows: list[dict]) -> dict:
     """95 % intervals of AUROC and F1, resampling contexts (a context's rollouts share its start): with
     80 pairs from 20 contexts, what separates two world models and what is a new draw of rollouts."""
     reward = np.asarray(reward, dtype=float)
-    contexts = [str((r.get("policy"), r.get("context_kind"), r.get("start") or r["context"])) for r in rows]
+    contexts = [str(context_key(r)) for r in rows]
     on = lambda name: cluster_bootstrap_ci(  # noqa: E731
         lambda i: binary_metrics(reward[i], real[i], eta)[name], contexts)
     return {"auroc_ci95": on("auroc"), "f1_ci95": on("f1")}
@@ -181,7 +188,7 @@ def mixed_groups(rows: list[dict], said: np.ndarray, real: np.ndarray) -> dict:
     imagination that agrees where reality does not gives the policy nothing to learn."""
     groups: dict = {}
     for i, r in enumerate(rows):
-        groups.setdefault((r.get("policy"), r.get("context_kind"), r.get("start") or r["context"]), []).append(i)
+        groups.setdefault(context_key(r), []).append(i)
     multi = [g for g in groups.values() if len(g) > 1]
     if not multi:
         return {}

@@ -66,7 +66,7 @@ def test_verdict_metrics_count_hacks_misses_and_timing():
             _row([0, 0.7, 0.7], first=None, real_scores=[0, 0.1, 0.1]),  # a hack: imagined success, real failure
             _row([0, 0.1, 0.2], first=12, real_scores=[0, 0.1, 0.9]),  # missed
             _row([0, 0.1, 0.1], first=None), _row([0, 0.05, 0.05], first=None)]
-    m = verdict_metrics(rows, eta=0.5)
+    m = verdict_metrics(rows, eta=0.5, intervals=True)
     assert m["rollouts"] == 5 and m["hacks"] == 1 and m["missed"] == 1
     assert m["hack_rate"] == 0.5 and m["precision"] == 0.5 and m["recall"] == 0.5 and m["f1"] == 0.5
     assert m["imagined_success"] == 0.4 and m["real_success"] == 0.4 and m["success_gap"] == 0.0
@@ -79,7 +79,7 @@ def test_verdict_metrics_count_hacks_misses_and_timing():
     assert m["auroc_ci95"] == [m["auroc"]] * 2  # one context: nothing to resample
     for i, r in enumerate(rows):
         r["context"] = i
-    m = verdict_metrics(rows, eta=0.5)
+    m = verdict_metrics(rows, eta=0.5, intervals=True)
     low, high = m["auroc_ci95"]
     assert low <= m["auroc"] <= high and 0 <= low < high <= 1  # five contexts of one rollout each: wide
     assert m["f1_ci95"][0] <= m["f1"] <= m["f1_ci95"][1]
