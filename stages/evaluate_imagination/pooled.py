@@ -1,0 +1,51 @@
+"""Paired-replay runs pooled: the headline policy's pairs of several `evaluate_imagination` runs (e.g. the
+same contexts with another `seed`: new rollouts) judged as one set, by the run's own reflector at its eta
+and by every further reflector that judged all of them, with 95 % intervals over contexts. A run is
+named by its output folder (`fidelity.json` and `pairs.json`, as the stage writes them and as kept under
+`results/`).
+
+    python -m stages.evaluate_imagination.pooled results/libero_goal/evaluate_imagination-8a69c60e37e8 \\
+        results/libero_goal/evaluate_imagination-5f94c0bd948b
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from stages.evaluate_imagination.evaluation import judged
+from worldenv_core.errors import ConfigError
+from worldenv_core.imagination.verdict import as_judged_by
+
+FIGURES = ("rollouts", "imagined_success", "real_success", "auroc", "auroc_ci95", "f1", "f1_ci95", "precision",
+           "recall", "hack_rate", "hacks", "max_task_gap", "timing_error_median")
+
+
+def pooled(folders: list[str | Path]) -> dict[str, dict]:
+    """-> {reflector: verdict metrics over the pooled pairs}; the runs must share eta and headline reflector."""
+    runs = [(json.loads((Path(f) / "fidelity.json").read_text()), json.loads((Path(f) / "pairs.json").read_text()))
+            for f in folders]
+    etas = {s["eta"] for s, _ in runs}
+    if len(etas) != 1:
+        raise ConfigError(f"the runs judge at different etas {sorted(etas)}: pool runs of one reflector")
+    rows = [r for s, pairs in runs for r in pairs[s["headline_policy"]]["rows"]]
+    judges = set.intersection(*[set(s.get("judges", {})) for s, _ in runs])
+    out = {"headline": judged(rows, etas.pop())}
+    for name in sorted(judges):
+        out[name] = judged([as_judged_by(r, name) for r in rows], runs[0][0]["judges"][name]["eta"])
+    return out
+
+
+def main(argv: list[str] | None = None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("runs", nargs="+", help="evaluate_imagination output folders")
+    args = p.parse_args(argv)
+    out = pooled(args.runs)
+    for name, m in out.items():
+        print(f"{name} (eta {m['eta']}): " + ", ".join(f"{k} {m[k]}" for k in FIGURES if k in m))
+    return out
+
+
+if __name__ == "__main__":
+    main()
