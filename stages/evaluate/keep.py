@@ -18,6 +18,7 @@ from pathlib import Path
 
 from stages.evaluate.evaluation import checkpoint_name
 from stages.evaluate.paired import read_evaluation
+from worldenv_core.cli import user_errors
 from worldenv_core.errors import ConfigError
 from worldenv_core.files import write_text_atomic
 from worldenv_core.manifest import Manifest, StageRecord
@@ -89,4 +90,5 @@ def main(argv: list[str] | None = None) -> list[Path]:
 
 
 if __name__ == "__main__":
-    main()
+    with user_errors():
+        main()
