@@ -22,8 +22,19 @@ FIGURES = ("rollouts", "imagined_success", "real_success", "auroc", "auroc_ci95"
            "recall", "hack_rate", "hacks", "max_task_gap", "timing_error_median")
 
 
-def pooled(folders: list[str | Path]) -> dict[str, dict]:
-    """-> {reflector: verdict metrics over the pooled pairs}; the runs must share eta and headline reflector."""
+def all_of(row: dict, etas: dict[str | None, float]) -> dict:
+    """The row as several reflectors judge it at once (None: the run's own): success at the first check
+    where every one passes its own eta, a pessimistic ensemble (the reward-model-ensemble remedy for
+    hacking). Scores become the smallest margin over the etas, so the verdict is at eta 0."""
+    def margins(side: str) -> list[float]:
+        per = [(as_judged_by(row, n) if n else row)[side] for n in etas]
+        return [min(s[i] - eta for s, eta in zip(per, etas.values())) for i in range(min(map(len, per)))]
+    return {**row, "imagined_scores": margins("imagined_scores"), "real_scores": margins("real_scores")}
+
+
+def pooled(folders: list[str | Path], ensemble: bool = False) -> dict[str, dict]:
+    """-> {reflector: verdict metrics over the pooled pairs}; the runs must share eta and headline reflector.
+    `ensemble`: also every reflector at once (`all_of`)."""
     runs = [(json.loads((Path(f) / "fidelity.json").read_text()), json.loads((Path(f) / "pairs.json").read_text()))
             for f in folders]
     etas = {s["eta"] for s, _ in runs}
@@ -34,14 +45,18 @@ def pooled(folders: list[str | Path]) -> dict[str, dict]:
     out = {"headline": judged(rows, etas.pop())}
     for name in sorted(judges):
         out[name] = judged([as_judged_by(r, name) for r in rows], runs[0][0]["judges"][name]["eta"])
+    if ensemble and judges:
+        etas = {None: out["headline"]["eta"]} | {n: out[n]["eta"] for n in sorted(judges)}
+        out["all of them"] = judged([all_of(r, etas) for r in rows], 0.0)
     return out
 
 
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("runs", nargs="+", help="evaluate_imagination output folders")
+    p.add_argument("--ensemble", action="store_true", help="also the reflectors at once: success where all pass")
     args = p.parse_args(argv)
-    out = pooled(args.runs)
+    out = pooled(args.runs, ensemble=args.ensemble)
     for name, m in out.items():
         print(f"{name} (eta {m['eta']}): " + ", ".join(f"{k} {m[k]}" for k in FIGURES if k in m))
     return out

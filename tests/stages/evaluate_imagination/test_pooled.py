@@ -29,5 +29,9 @@ def test_pooled_runs_are_judged_as_one_set_by_each_reflector(tmp_path):
     assert out["headline"]["auroc"] == want["auroc"] and len(out["headline"]["auroc_ci95"]) == 2
     judged_by_j = verdict_metrics([as_judged_by(r, "j") for r in a + b], 0.3)
     assert out["j"]["eta"] == 0.3 and out["j"]["hacks"] == judged_by_j["hacks"] == 1  # 0.6 + 0.2 passes 0.3
+    # both at once: j passes 0.3 wherever the headline passes 0.5, so together they judge as the headline
+    both = pooled([tmp_path / "a", tmp_path / "b"], ensemble=True)["all of them"]
+    assert both["eta"] == 0.0 and both["hacks"] == out["headline"]["hacks"] == 1
+    assert both["imagined_success"] == out["headline"]["imagined_success"] < out["j"]["imagined_success"]
     with pytest.raises(ConfigError, match="different etas"):
         pooled([tmp_path / "a", _run(tmp_path / "c", [_row([0, 0.1], first=None)], eta=0.9)])
