@@ -109,7 +109,7 @@ def plot_ranking(out: dict, path: str | Path) -> Path:
             ax.annotate(name.removesuffix("/policy").split("/")[-1], (m["evaluation_success"], m["imagined_success"]), fontsize=6)
         rho = r["imagined_vs_evaluation"]
         ax.set(xlabel="real success in the evaluations", ylabel="success on the run's contexts", ylim=(-0.02, 1.02),
-               title=f"{reflector}: Spearman {rho['spearman']:.2f} [{rho['ci95'][0]:.2f}, {rho['ci95'][1]:.2f}]")
+               title=f"{'the run's reflector' if reflector == 'headline' else reflector}: Spearman {rho['spearman']:.2f} [{rho['ci95'][0]:.2f}, {rho['ci95'][1]:.2f}]")
         ax.title.set_fontsize(8)
         ax.legend(fontsize=7)
     fig.tight_layout()
