@@ -95,6 +95,9 @@ def _interval(draws: np.ndarray) -> list[float]:
     return [float(x) for x in np.percentile(draws, [2.5, 97.5])] if len(draws) else [float("nan")] * 2
 
 
+WHO = {"headline": "the run's reflector"}
+
+
 def plot_ranking(out: dict, path: str | Path) -> Path:
     """Per reflector, each policy's imagined success (and the real success of its imagined actions)
     against its evaluation: a ranker puts the points in the evaluation's order, not on the diagonal
@@ -109,7 +112,7 @@ def plot_ranking(out: dict, path: str | Path) -> Path:
             ax.annotate(name.removesuffix("/policy").split("/")[-1], (m["evaluation_success"], m["imagined_success"]), fontsize=6)
         rho = r["imagined_vs_evaluation"]
         ax.set(xlabel="real success in the evaluations", ylabel="success on the run's contexts", ylim=(-0.02, 1.02),
-               title=f"{'the run's reflector' if reflector == 'headline' else reflector}: Spearman {rho['spearman']:.2f} [{rho['ci95'][0]:.2f}, {rho['ci95'][1]:.2f}]")
+               title=f"{WHO.get(reflector, reflector)}: Spearman {rho['spearman']:.2f} [{rho['ci95'][0]:.2f}, {rho['ci95'][1]:.2f}]")
         ax.title.set_fontsize(8)
         ax.legend(fontsize=7)
     fig.tight_layout()
