@@ -65,7 +65,8 @@ def spearman(x, y) -> float:
     import numpy as np
 
     def ranks(v):
-        _, inverse, counts = np.unique(np.asarray(v, dtype=float), return_inverse=True, return_counts=True)
+        # rounded: rates summed in another order (0.1 + 0.2 against 0.3) are the same rate, so a tie
+        _, inverse, counts = np.unique(np.round(np.asarray(v, dtype=float), 9), return_inverse=True, return_counts=True)
         return (np.cumsum(counts) - (counts - 1) / 2)[inverse]
 
     rx, ry = ranks(x), ranks(y)

@@ -1,7 +1,9 @@
 """The paired SFT-vs-post-trained test against hand-computed values."""
 import math
 
-from worldenv_core.metrics import paired_success_test
+import pytest
+
+from worldenv_core.metrics import paired_success_test, spearman
 
 
 def test_paired_success_test_by_hand():
@@ -34,3 +36,9 @@ def test_cluster_bootstrap_resamples_whole_clusters():
     # one cluster per row of many identical rows: no spread; undefined statistics give nan
     assert cluster_bootstrap_ci(lambda i: 1.0, list(range(20))) == [1.0, 1.0]
     assert np.isnan(cluster_bootstrap_ci(lambda i: float("nan"), [0, 1])).all()
+
+
+def test_spearman_counts_rates_that_differ_by_rounding_as_ties():
+    assert 0.1 + 0.2 != 0.3  # the same rate, summed in another order
+    assert spearman([0.1 + 0.2, 0.3, 0.5], [1, 2, 3]) == spearman([0.3, 0.3, 0.5], [1, 2, 3])
+    assert spearman([0.3, 0.3, 0.5], [1, 2, 3]) == pytest.approx(0.866, abs=1e-3)
