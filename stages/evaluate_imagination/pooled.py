@@ -15,6 +15,7 @@ import json
 from pathlib import Path
 
 from stages.evaluate_imagination.evaluation import judged
+from worldenv_core.cli import user_errors
 from worldenv_core.errors import ConfigError
 from worldenv_core.imagination.verdict import as_judged_by
 
@@ -32,22 +33,31 @@ def all_of(row: dict, etas: dict[str | None, float]) -> dict:
     return {**row, "imagined_scores": margins("imagined_scores"), "real_scores": margins("real_scores")}
 
 
-def pooled(folders: list[str | Path], ensemble: bool = False) -> dict[str, dict]:
+def pooled(folders: list[str | Path], ensemble: bool = False, all_policies: bool = False,
+           reflector: str | None = None) -> dict[str, dict]:
     """-> {reflector: verdict metrics over the pooled pairs}; the runs must share eta and headline reflector.
-    `ensemble`: also every reflector at once (`all_of`)."""
+    `ensemble`: also every reflector at once (`all_of`). `all_policies`: every paired policy's pairs, not
+    only the headline policy's. `reflector`: only that further reflector's verdict, which its own eta
+    fixes, so runs whose own reflectors differ pool too."""
     runs = [(json.loads((Path(f) / "fidelity.json").read_text()), json.loads((Path(f) / "pairs.json").read_text()))
             for f in folders]
+    rows = [r for s, pairs in runs for name, v in pairs.items()
+            if all_policies or name == s["headline_policy"] for r in v["rows"]]
+    judges = set.intersection(*[set(s.get("judges", {})) for s, _ in runs])
+    if reflector is not None:
+        if reflector not in judges:
+            raise ConfigError(f"{reflector} did not judge every run (all of them: {sorted(judges)})")
+        return {reflector: judged([as_judged_by(r, reflector) for r in rows], runs[0][0]["judges"][reflector]["eta"])}
     etas = {s["eta"] for s, _ in runs}
     if len(etas) != 1:
-        raise ConfigError(f"the runs judge at different etas {sorted(etas)}: pool runs of one reflector")
-    rows = [r for s, pairs in runs for r in pairs[s["headline_policy"]]["rows"]]
-    judges = set.intersection(*[set(s.get("judges", {})) for s, _ in runs])
+        raise ConfigError(f"the runs judge at different etas {sorted(etas)}: pool runs of one reflector "
+                          "(or one further reflector of them all: --reflector)")
     out = {"headline": judged(rows, etas.pop())}
     for name in sorted(judges):
         out[name] = judged([as_judged_by(r, name) for r in rows], runs[0][0]["judges"][name]["eta"])
     if ensemble and judges:
-        etas = {None: out["headline"]["eta"]} | {n: out[n]["eta"] for n in sorted(judges)}
-        out["all of them"] = judged([all_of(r, etas) for r in rows], 0.0)
+        thresholds = {None: out["headline"]["eta"]} | {n: out[n]["eta"] for n in sorted(judges)}
+        out["all of them"] = judged([all_of(r, thresholds) for r in rows], 0.0)
     return out
 
 
@@ -55,12 +65,15 @@ def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("runs", nargs="+", help="evaluate_imagination output folders")
     p.add_argument("--ensemble", action="store_true", help="also the reflectors at once: success where all pass")
+    p.add_argument("--all-policies", action="store_true", help="every paired policy's pairs, not only the headline's")
+    p.add_argument("--reflector", help="only this further reflector (named as in fidelity.json's judges)")
     args = p.parse_args(argv)
-    out = pooled(args.runs, ensemble=args.ensemble)
+    out = pooled(args.runs, ensemble=args.ensemble, all_policies=args.all_policies, reflector=args.reflector)
     for name, m in out.items():
         print(f"{name} (eta {m['eta']}): " + ", ".join(f"{k} {m[k]}" for k in FIGURES if k in m))
     return out
 
 
 if __name__ == "__main__":
-    main()
+    with user_errors():
+        main()

@@ -35,3 +35,17 @@ def test_pooled_runs_are_judged_as_one_set_by_each_reflector(tmp_path):
     assert both["imagined_success"] == out["headline"]["imagined_success"] < out["j"]["imagined_success"]
     with pytest.raises(ConfigError, match="different etas"):
         pooled([tmp_path / "a", _run(tmp_path / "c", [_row([0, 0.1], first=None)], eta=0.9)])
+    # one further reflector pools across runs whose own reflectors differ
+    only_j = pooled([tmp_path / "a", tmp_path / "b", tmp_path / "c"], reflector="j")
+    assert list(only_j) == ["j"] and only_j["j"]["rollouts"] == 5
+    with pytest.raises(ConfigError, match="did not judge every run"):
+        pooled([tmp_path / "a"], reflector="k")
+
+
+def test_pooled_all_policies_takes_every_paired_policy(tmp_path):
+    folder = _run(tmp_path / "a", [_row([0, 0.9], first=8, context=0)])
+    pairs = json.loads((folder / "pairs.json").read_text())
+    pairs["q"] = {"rows": pairs["p"]["rows"] + pairs["p"]["rows"]}
+    (folder / "pairs.json").write_text(json.dumps(pairs))
+    assert pooled([folder])["headline"]["rollouts"] == 1
+    assert pooled([folder], all_policies=True)["headline"]["rollouts"] == 3
