@@ -20,7 +20,7 @@ from worldenv_core.errors import ConfigError
 from worldenv_core.imagination.verdict import as_judged_by
 
 FIGURES = ("rollouts", "imagined_success", "real_success", "auroc", "auroc_ci95", "f1", "f1_ci95", "precision",
-           "recall", "hack_rate", "hacks", "max_task_gap", "timing_error_median")
+           "recall", "hack_rate", "hack_rate_ci95", "hacks", "max_task_gap", "timing_error_median")
 
 
 def all_of(row: dict, etas: dict[str | None, float]) -> dict:

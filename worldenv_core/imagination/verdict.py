@@ -173,13 +173,14 @@ def context_key(row: dict) -> tuple:
 
 
 def context_intervals(reward, real: np.ndarray, eta: float, rows: list[dict]) -> dict:
-    """95 % intervals of AUROC and F1, resampling contexts (a context's rollouts share its start): with
+    """95 % intervals of AUROC, F1 and the hack rate, resampling contexts (a context's rollouts share its start): with
     80 pairs from 20 contexts, what separates two world models and what is a new draw of rollouts."""
     reward = np.asarray(reward, dtype=float)
     contexts = [str(context_key(r)) for r in rows]
     on = lambda name: cluster_bootstrap_ci(  # noqa: E731
         lambda i: binary_metrics(reward[i], real[i], eta)[name], contexts)
-    return {"auroc_ci95": on("auroc"), "f1_ci95": on("f1")}
+    hack = cluster_bootstrap_ci(lambda i: 1.0 - binary_metrics(reward[i], real[i], eta)["precision"], contexts)
+    return {"auroc_ci95": on("auroc"), "f1_ci95": on("f1"), "hack_rate_ci95": hack}
 
 
 def mixed_groups(rows: list[dict], said: np.ndarray, real: np.ndarray) -> dict:
@@ -225,14 +226,17 @@ def replay_eta(rows: list[dict], folds: int = 2, grid=ETA_GRID) -> dict:
     rollouts were watched to the horizon, so the verdict at any eta is known."""
     from worldenv_core.rl.termination import best_eta
 
-    if len({r["context"] for r in rows}) < folds:
+    contexts = sorted({r["context"] for r in rows})
+    if len(contexts) < folds:
         return {"folds": folds, "etas": []}
+    # folds by the context's rank, not its number: a subset (e.g. every other context) still splits evenly
+    fold = {c: i % folds for i, c in enumerate(contexts)}
     judged, etas = [], []
     for k in range(folds):
-        train = [r for r in rows if r["context"] % folds != k]
+        train = [r for r in rows if fold[r["context"]] != k]
         eta = best_eta({e: verdict_metrics(train, e)["f1"] for e in grid}, prior=0.5)
         etas.append(eta)
-        judged.append(verdict_metrics([r for r in rows if r["context"] % folds == k], eta))
+        judged.append(verdict_metrics([r for r in rows if fold[r["context"]] == k], eta))
     n = sum(j["rollouts"] for j in judged)
     out = {"folds": folds, "etas": etas}
     for key in ("f1", "precision", "hack_rate", "imagined_success", "real_success"):  # weighted by pairs

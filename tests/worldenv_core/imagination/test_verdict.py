@@ -83,6 +83,8 @@ def test_verdict_metrics_count_hacks_misses_and_timing():
     low, high = m["auroc_ci95"]
     assert low <= m["auroc"] <= high and 0 <= low < high <= 1  # five contexts of one rollout each: wide
     assert m["f1_ci95"][0] <= m["f1"] <= m["f1_ci95"][1]
+    assert m["hack_rate_ci95"][0] <= m["hack_rate"] <= m["hack_rate_ci95"][1]  # 1 of 2 imagined successes
+    assert 0 <= m["hack_rate_ci95"][0] < m["hack_rate_ci95"][1] <= 1
 
 
 def test_mixed_groups_count_the_contexts_whose_rollouts_disagree_imagined_and_real():
@@ -118,6 +120,9 @@ def test_eta_chosen_on_replays_is_judged_on_the_other_contexts():
     assert out["folds"] == 2 and out["etas"] == [0.25, 0.25] and out["f1"] == 1.0
     assert out["hack_rate"] == 0.0 and out["rollouts"] == 8
     assert replay_eta(rows[:2]) == {"folds": 2, "etas": []}  # one context: nothing to hold out
+    # every other context (their numbers all even, as the 1/3 frames of two-frame demos are): folds still split them
+    evens = [r for r in rows if r["context"] % 2 == 0]
+    assert replay_eta(evens)["etas"] == [0.25, 0.25] and replay_eta(evens)["rollouts"] == 4
 
 
 def test_frame_metrics_pair_frames_by_step_and_skip_the_shared_start():

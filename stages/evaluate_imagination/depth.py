@@ -1,0 +1,114 @@
+"""The verdict by how far into its task a context starts: paired-replay runs' pairs grouped by the
+context's depth (0: an episode start, a benchmark init state or a demo's first frame; k/(n+1): the k-th
+of a demo's n mid-episode frames, `mid_episode_frames`' fractions of its way to first success), each
+group judged as one set. The curve says where the imagined verdict holds: a world model that drifts
+over the horizon is faithful only when little of the task is left to imagine.
+
+    python -m stages.evaluate_imagination.depth results/libero_goal/evaluate_imagination-<starts> \\
+        results/libero_goal/evaluate_imagination-<mid-episode> ... [--reflector R] [--plot depth.png]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections import defaultdict
+from fractions import Fraction
+from pathlib import Path
+
+from stages.evaluate_imagination.evaluation import judged
+from worldenv_core.cli import user_errors
+from worldenv_core.errors import ConfigError
+from worldenv_core.files import write_text_atomic
+from worldenv_core.imagination.verdict import as_judged_by
+from worldenv_core.viz import figure, save_figure
+
+FIGURES = ("rollouts", "imagined_success", "real_success", "hack_rate", "hack_rate_ci95", "hacks", "f1", "auroc", "auroc_ci95")
+
+
+def start_frame(row: dict) -> tuple[str, int]:
+    """(episode, frame) a pair starts from: `start` is '<episode>@<frame>' for demo frames, 'init<k>' for
+    benchmark init states (frame 0 of a scene that has no episode)."""
+    episode, _, frame = str(row.get("start") or row["context"]).rpartition("@")
+    return (episode, int(frame)) if episode else (frame, 0)
+
+
+def depths(rows: list[dict]) -> list[Fraction]:
+    """Each row's depth. A demo's mid-episode frames sit at k/(n+1) of its way to first success, so a
+    frame's rank among the distinct non-zero frames of its episode (in these rows) gives k and n."""
+    frames = defaultdict(set)
+    for r in rows:
+        episode, frame = start_frame(r)
+        if frame:
+            frames[episode].add(frame)
+    out = []
+    for r in rows:
+        episode, frame = start_frame(r)
+        if r.get("context_kind") == "init" or frame == 0:
+            out.append(Fraction(0))
+        else:
+            ranked = sorted(frames[episode])
+            out.append(Fraction(ranked.index(frame) + 1, len(ranked) + 1))
+    return out
+
+
+def by_depth(folders: list[str | Path], reflector: str | None = None, all_policies: bool = False) -> dict[str, dict]:
+    """-> {depth ('0', '1/3', ...): verdict metrics of the pairs starting there}, judged by the runs' own
+    reflector (they must share it: their etas are checked) or by further reflector `reflector` in every run."""
+    rows, etas = [], set()
+    for f in folders:
+        summary = json.loads((Path(f) / "fidelity.json").read_text())
+        pairs = json.loads((Path(f) / "pairs.json").read_text())
+        if reflector is not None and reflector not in summary.get("judges", {}):
+            raise ConfigError(f"{reflector} did not judge {f} (its judges: {sorted(summary.get('judges', {}))})")
+        etas.add(summary["judges"][reflector]["eta"] if reflector else summary["eta"])
+        run_rows = [r for name, v in pairs.items() if all_policies or name == summary["headline_policy"] for r in v["rows"]]
+        rows += [as_judged_by(r, reflector) for r in run_rows] if reflector else run_rows
+    if len(etas) != 1:
+        raise ConfigError(f"the runs judge at different etas {sorted(etas)}: name one further reflector "
+                          "that judged them all (--reflector)")
+    eta = etas.pop()
+    groups = defaultdict(list)
+    for r, d in zip(rows, depths(rows)):
+        groups[d].append(r)
+    return {str(d): judged(groups[d], eta) for d in sorted(groups)}
+
+
+def plot_depth(out: dict[str, dict], path: str | Path, title: str = "") -> Path:
+    """Imagined and real success of the same actions, and the hack rate, against the context's depth."""
+    fig, ax = figure(figsize=(5, 3.6))
+    x = [float(Fraction(d)) for d in out]
+    for key, label, style in (("imagined_success", "imagined success", "o-"), ("real_success", "real success, same actions", "x-"),
+                              ("hack_rate", "hack rate", "s--"), ("auroc", "AUROC", "^:")):
+        ax.plot(x, [out[d].get(key, float("nan")) for d in out], style, label=label)
+    for xi, d in zip(x, out):
+        ax.annotate(f"{out[d]['rollouts']} pairs", (xi, 1.0), ha="center", fontsize=7)
+    ax.set(xlabel="context depth (fraction of the demo's way to first success)", ylim=(-0.02, 1.08), xticks=x,
+           xticklabels=list(out), title=title)
+    ax.title.set_fontsize(8)
+    ax.legend(fontsize=7, loc="center right")
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("runs", nargs="+", help="evaluate_imagination output folders (fidelity.json, pairs.json)")
+    p.add_argument("--reflector", help="judge by this further reflector (named as in fidelity.json's judges)")
+    p.add_argument("--all-policies", action="store_true", help="every paired policy's pairs, not only the headline's")
+    p.add_argument("--json", help="also write the figures here")
+    p.add_argument("--plot", help="and the curve (png) here")
+    args = p.parse_args(argv)
+    out = by_depth(args.runs, args.reflector, args.all_policies)
+    for d, m in out.items():
+        print(f"depth {d}: " + ", ".join(f"{k} {m[k]}" for k in FIGURES if k in m))
+    if args.json:
+        write_text_atomic(Path(args.json), json.dumps(out, indent=1, default=str))
+    if args.plot:
+        plot_depth(out, args.plot, title=f"verdict by context depth ({args.reflector or 'the runs’ reflector'})")
+    return out
+
+
+if __name__ == "__main__":
+    with user_errors():
+        main()
