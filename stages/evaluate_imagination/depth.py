@@ -14,7 +14,10 @@ import argparse
 import json
 from collections import defaultdict
 from fractions import Fraction
+from itertools import combinations
 from pathlib import Path
+
+import numpy as np
 
 from stages.evaluate_imagination.evaluation import judged
 from worldenv_core.cli import user_errors
@@ -34,21 +37,25 @@ def start_frame(row: dict) -> tuple[str, int]:
 
 
 def depths(rows: list[dict]) -> list[Fraction]:
-    """Each row's depth. A demo's mid-episode frames sit at k/(n+1) of its way to first success, so a
-    frame's rank among the distinct non-zero frames of its episode (in these rows) gives k and n."""
+    """Each row's depth. A demo's n mid-episode frames sit at round(end * k / (n + 1)), k = 1..n, `end` its
+    first success; n is the most frames any demo has in these rows. A demo with fewer (a context dropped
+    because its prefix did not replay) gets the k's that put its frames on one `end` most closely."""
     frames = defaultdict(set)
     for r in rows:
         episode, frame = start_frame(r)
         if frame:
             frames[episode].add(frame)
+    n = max(map(len, frames.values()), default=0)
+    ks = {}
+    for episode, fs in frames.items():
+        fs = sorted(fs)
+        spread = lambda k: np.ptp([f * (n + 1) / ki for f, ki in zip(fs, k)])  # noqa: E731
+        ks[episode] = dict(zip(fs, min(combinations(range(1, n + 1), len(fs)), key=spread)))
     out = []
     for r in rows:
         episode, frame = start_frame(r)
-        if r.get("context_kind") == "init" or frame == 0:
-            out.append(Fraction(0))
-        else:
-            ranked = sorted(frames[episode])
-            out.append(Fraction(ranked.index(frame) + 1, len(ranked) + 1))
+        zero = r.get("context_kind") == "init" or frame == 0
+        out.append(Fraction(0) if zero else Fraction(ks[episode][frame], n + 1))
     return out
 
 
@@ -81,6 +88,8 @@ def plot_depth(out: dict[str, dict], path: str | Path, title: str = "") -> Path:
     for key, label, style in (("imagined_success", "imagined success", "o-"), ("real_success", "real success, same actions", "x-"),
                               ("hack_rate", "hack rate", "s--"), ("auroc", "AUROC", "^:")):
         ax.plot(x, [out[d].get(key, float("nan")) for d in out], style, label=label)
+    band = np.array([out[d].get("hack_rate_ci95") or [np.nan, np.nan] for d in out], dtype=float)
+    ax.fill_between(x, band[:, 0], band[:, 1], color="tab:green", alpha=0.15, lw=0, label="hack rate, 95 % (contexts)")
     for xi, d in zip(x, out):
         ax.annotate(f"{out[d]['rollouts']} pairs", (xi, 1.0), ha="center", fontsize=7)
     ax.set(xlabel="context depth (fraction of the demo's way to first success)", ylim=(-0.02, 1.08), xticks=x,

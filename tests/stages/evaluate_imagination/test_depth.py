@@ -20,6 +20,10 @@ def test_depth_is_the_frames_rank_within_its_demo_and_zero_at_a_start():
             _at("d/b.mcap@40", "episode", [0], None, 4), _at("d/b.mcap@20", "episode", [0], None, 5),
             _at("d/b.mcap@20", "episode", [0], None, 5)]
     assert depths(rows) == [0, 0, Fraction(1, 3), Fraction(2, 3), Fraction(2, 3), Fraction(1, 3), Fraction(1, 3)]
+    # a demo that lost a frame (its prefix did not replay) keeps its frames' places: 40 and 80 of 20..100
+    five = [_at(f"d/a.mcap@{f}", "episode", [0], None, i) for i, f in enumerate((20, 40, 60, 80, 100))]
+    four = [_at(f"d/b.mcap@{f}", "episode", [0], None, 5 + i) for i, f in enumerate((17, 33, 67, 83))]  # 50 lost
+    assert depths(five + four)[5:] == [Fraction(1, 6), Fraction(2, 6), Fraction(4, 6), Fraction(5, 6)]
 
 
 def test_each_depth_is_judged_as_one_set(tmp_path):
