@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from stages.evaluate_imagination.evaluation import judged
+from stages.evaluate_imagination.pooled import read_runs
 from worldenv_core.cli import user_errors
 from worldenv_core.errors import ConfigError
 from worldenv_core.files import write_text_atomic
@@ -62,15 +63,13 @@ def depths(rows: list[dict]) -> list[Fraction]:
 def by_depth(folders: list[str | Path], reflector: str | None = None, all_policies: bool = False) -> dict[str, dict]:
     """-> {depth ('0', '1/3', ...): verdict metrics of the pairs starting there}, judged by the runs' own
     reflector (they must share it: their etas are checked) or by further reflector `reflector` in every run."""
-    rows, etas = [], set()
-    for f in folders:
-        summary = json.loads((Path(f) / "fidelity.json").read_text())
-        pairs = json.loads((Path(f) / "pairs.json").read_text())
-        if reflector is not None and reflector not in summary.get("judges", {}):
-            raise ConfigError(f"{reflector} did not judge {f} (its judges: {sorted(summary.get('judges', {}))})")
-        etas.add(summary["judges"][reflector]["eta"] if reflector else summary["eta"])
-        run_rows = [r for name, v in pairs.items() if all_policies or name == summary["headline_policy"] for r in v["rows"]]
-        rows += [as_judged_by(r, reflector) for r in run_rows] if reflector else run_rows
+    runs, rows = read_runs(folders, all_policies)
+    if reflector is not None:
+        missing = [str(f) for f, (s, _) in zip(folders, runs) if reflector not in s.get("judges", {})]
+        if missing:
+            raise ConfigError(f"{reflector} did not judge {', '.join(missing)}")
+        rows = [as_judged_by(r, reflector) for r in rows]
+    etas = {s["judges"][reflector]["eta"] if reflector else s["eta"] for s, _ in runs}
     if len(etas) != 1:
         raise ConfigError(f"the runs judge at different etas {sorted(etas)}: name one further reflector "
                           "that judged them all (--reflector)")

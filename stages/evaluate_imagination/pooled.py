@@ -33,16 +33,23 @@ def all_of(row: dict, etas: dict[str | None, float]) -> dict:
     return {**row, "imagined_scores": margins("imagined_scores"), "real_scores": margins("real_scores")}
 
 
+def read_runs(folders: list[str | Path], all_policies: bool = False) -> tuple[list[tuple[dict, dict]], list[dict]]:
+    """-> ([(fidelity.json, pairs.json) of each run], the rows of their headline policy's pairs, or of
+    every paired policy's)."""
+    runs = [(json.loads((Path(f) / "fidelity.json").read_text()), json.loads((Path(f) / "pairs.json").read_text()))
+            for f in folders]
+    rows = [r for s, pairs in runs for name, v in pairs.items()
+            if all_policies or name == s["headline_policy"] for r in v["rows"]]
+    return runs, rows
+
+
 def pooled(folders: list[str | Path], ensemble: bool = False, all_policies: bool = False,
            reflector: str | None = None) -> dict[str, dict]:
     """-> {reflector: verdict metrics over the pooled pairs}; the runs must share eta and headline reflector.
     `ensemble`: also every reflector at once (`all_of`). `all_policies`: every paired policy's pairs, not
     only the headline policy's. `reflector`: only that further reflector's verdict, which its own eta
     fixes, so runs whose own reflectors differ pool too."""
-    runs = [(json.loads((Path(f) / "fidelity.json").read_text()), json.loads((Path(f) / "pairs.json").read_text()))
-            for f in folders]
-    rows = [r for s, pairs in runs for name, v in pairs.items()
-            if all_policies or name == s["headline_policy"] for r in v["rows"]]
+    runs, rows = read_runs(folders, all_policies)
     judges = set.intersection(*[set(s.get("judges", {})) for s, _ in runs])
     if reflector is not None:
         if reflector not in judges:
