@@ -53,15 +53,30 @@ def synthetic_episodes():
 
 
 # Stage and fault tests share one real expert collection of the tiny task (collecting costs ~1 min):
-# 2 demos that go on for 8 steps after the oracle's success (the reflector's positive frames).
+# 2 demos that go on for 8 steps after the oracle's success (the reflector's positive frames). The
+# pytest-xdist workers share it too: the first to get the lock collects, the others wait and read it
+# (every user copies it before writing).
+def shared_root(tmp_path_factory):
+    """The folder every pytest-xdist worker's base temp is in (the base temp itself without workers)."""
+    root = tmp_path_factory.getbasetemp()
+    return root.parent if os.environ.get("PYTEST_XDIST_WORKER") else root
+
+
 @pytest.fixture(scope="session")
 def _tiny_demos(tmp_path_factory):
+    from filelock import FileLock
+
     from stages.collect.run import run as collect
     from worldenv_core.stage import compose_config
 
-    exp = tmp_path_factory.mktemp("demos")
-    collect(compose_config("collect", ["+task=tiny", "scale=tiny", f"experiment_dir={exp}", f"data_dir={exp / 'data'}",
-                                       "episodes_per_task=2", "post_success_steps=8", "workers=1", "progress=false", "lerobot_export=false"]))
+    root = shared_root(tmp_path_factory)
+    exp = root / "tiny-demos"
+    with FileLock(str(root / "tiny-demos.lock")):
+        if not (root / "tiny-demos.done").exists():
+            collect(compose_config("collect", ["+task=tiny", "scale=tiny", f"experiment_dir={exp}", f"data_dir={exp / 'data'}",
+                                               "episodes_per_task=2", "post_success_steps=8", "workers=1", "progress=false",
+                                               "lerobot_export=false"]))
+            (root / "tiny-demos.done").touch()  # complete: a worker killed mid-collection leaves none
     return exp
 
 
