@@ -83,14 +83,18 @@ suites: setup
 	$(PY) -m stages.suites outputs/suites $(foreach t,$(SUITES),$(t)=outputs/$(t)-$(SCALE))
 
 # A suite's Table 1 row from its released checkpoints (checkpoints/<suite>/sft and post_trained, where
-# released), without retraining: every termination on the first RELEASE_INIT benchmark init states.
+# released), without retraining: every termination on the first RELEASE_INIT benchmark init states, judged
+# by the released reflector (checkpoints/<suite>/reflector); without one, oracle termination only.
 SUITE ?= libero_goal
 RELEASE_INIT ?= 50
 eval-release: setup
+	@if [ -d checkpoints/$(SUITE)/reflector ]; then term="termination=all reflector_from=checkpoints/$(SUITE)/reflector"; \
+	else term="termination=oracle"; echo "checkpoints/$(SUITE)/reflector: not released, so oracle termination only"; fi; \
 	for policy in sft post_trained; do \
 	  if [ -d checkpoints/$(SUITE)/$$policy ]; then \
+	    echo "evaluating checkpoints/$(SUITE)/$$policy ($$term)"; \
 	    $(PY) -m stages.evaluate +task=$(SUITE) experiment_dir=outputs/release-$(SUITE) \
-	      policy_from=checkpoints/$(SUITE)/$$policy policy_label=$$policy termination=all init_states=$(RELEASE_INIT) || exit 1; \
+	      policy_from=checkpoints/$(SUITE)/$$policy policy_label=$$policy $$term init_states=$(RELEASE_INIT) || exit 1; \
 	  else echo "checkpoints/$(SUITE)/$$policy: not released"; fi; done
 
 # The same pipeline on the tiny task and scale: minutes, proves the plumbing.
