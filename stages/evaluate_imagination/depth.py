@@ -2,7 +2,8 @@
 context's depth (0: an episode start, a benchmark init state or a demo's first frame; k/(n+1): the k-th
 of a demo's n mid-episode frames, `mid_episode_frames`' fractions of its way to first success), each
 group judged as one set. The curve says where the imagined verdict holds: a world model that drifts
-over the horizon is faithful only when little of the task is left to imagine.
+over the horizon is faithful only once enough of the task is done. Runs pooled in one call must share
+their context layout (`contexts.episode_frames`): a demo's depths are read off the frames it has.
 
     python -m stages.evaluate_imagination.depth results/libero_goal/evaluate_imagination-<starts> \\
         results/libero_goal/evaluate_imagination-<mid-episode> ... [--reflector R] [--plot depth.png]
