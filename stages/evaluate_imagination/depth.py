@@ -2,8 +2,8 @@
 context's depth (0: an episode start, a benchmark init state or a demo's first frame; k/(n+1): the k-th
 of a demo's n mid-episode frames, `mid_episode_frames`' fractions of its way to first success), each
 group judged as one set. The curve says where the imagined verdict holds: a world model that drifts
-over the horizon is faithful only once enough of the task is done. Runs pooled in one call must share
-their context layout (`contexts.episode_frames`): a demo's depths are read off the frames it has.
+over the horizon is faithful only once enough of the task is done. Depths are read per run (off the
+frames each demo has in it), so runs of different context layouts pool.
 
     python -m stages.evaluate_imagination.depth results/libero_goal/evaluate_imagination-<starts> \\
         results/libero_goal/evaluate_imagination-<mid-episode> ... [--reflector R] [--plot depth.png]
@@ -64,7 +64,12 @@ def depths(rows: list[dict]) -> list[Fraction]:
 def by_depth(folders: list[str | Path], reflector: str | None = None, all_policies: bool = False) -> dict[str, dict]:
     """-> {depth ('0', '1/3', ...): verdict metrics of the pairs starting there}, judged by the runs' own
     reflector (they must share it: their etas are checked) or by further reflector `reflector` in every run."""
-    runs, rows = read_runs(folders, all_policies)
+    runs, rows, at = [], [], []
+    for f in folders:  # depths per run: each run's demos have its own frames
+        run, run_rows = read_runs([f], all_policies)
+        runs += run
+        rows += run_rows
+        at += depths(run_rows)
     if reflector is not None:
         missing = [str(f) for f, (s, _) in zip(folders, runs) if reflector not in s.get("judges", {})]
         if missing:
@@ -76,7 +81,7 @@ def by_depth(folders: list[str | Path], reflector: str | None = None, all_polici
                           "that judged them all (--reflector)")
     eta = etas.pop()
     groups = defaultdict(list)
-    for r, d in zip(rows, depths(rows)):
+    for r, d in zip(rows, at):
         groups[d].append(r)
     return {str(d): judged(groups[d], eta) for d in sorted(groups)}
 

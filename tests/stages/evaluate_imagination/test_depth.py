@@ -43,3 +43,10 @@ def test_each_depth_is_judged_as_one_set(tmp_path):
     assert plot_depth(out, tmp_path / "depth.png").stat().st_size > 0
     with pytest.raises(ConfigError, match="did not judge"):
         by_depth([folder], reflector="k")
+    # another run of the same demos with one frame each (at 1/2): depths are read per run, so they pool
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "fidelity.json").write_text((folder / "fidelity.json").read_text())
+    (other / "pairs.json").write_text(json.dumps({"p": {"rows": [_at("d/e0.mcap@45", "episode", [0, 0.1], None, 0)]}}))
+    both = by_depth([folder, other])
+    assert list(both) == ["0", "1/3", "1/2", "2/3"] and both["1/2"]["rollouts"] == 1 and both["2/3"]["rollouts"] == 3
