@@ -21,11 +21,9 @@ from pathlib import Path
 import numpy as np
 
 from stages.evaluate_imagination.evaluation import judged
-from stages.evaluate_imagination.pooled import read_runs
+from stages.evaluate_imagination.pooled import judged_by, read_runs
 from worldenv_core.cli import user_errors
-from worldenv_core.errors import ConfigError
 from worldenv_core.files import write_text_atomic
-from worldenv_core.imagination.verdict import as_judged_by
 from worldenv_core.viz import figure, save_figure
 
 FIGURES = ("rollouts", "imagined_success", "real_success", "hack_rate", "hack_rate_ci95", "hacks", "f1", "auroc", "auroc_ci95")
@@ -63,23 +61,14 @@ def depths(rows: list[dict]) -> list[Fraction]:
 
 def by_depth(folders: list[str | Path], reflector: str | None = None, all_policies: bool = False) -> dict[str, dict]:
     """-> {depth ('0', '1/3', ...): verdict metrics of the pairs starting there}, judged by the runs' own
-    reflector (they must share it: their etas are checked) or by further reflector `reflector` in every run."""
+    reflector (their etas must agree) or by further reflector `reflector`, which must have judged every run."""
     runs, rows, at = [], [], []
     for f in folders:  # depths per run: each run's demos have its own frames
         run, run_rows = read_runs([f], all_policies)
         runs += run
         rows += run_rows
         at += depths(run_rows)
-    if reflector is not None:
-        missing = [str(f) for f, (s, _) in zip(folders, runs) if reflector not in s.get("judges", {})]
-        if missing:
-            raise ConfigError(f"{reflector} did not judge {', '.join(missing)}")
-        rows = [as_judged_by(r, reflector) for r in rows]
-    etas = {s["judges"][reflector]["eta"] if reflector else s["eta"] for s, _ in runs}
-    if len(etas) != 1:
-        raise ConfigError(f"the runs judge at different etas {sorted(etas)}: name one further reflector "
-                          "that judged them all (--reflector)")
-    eta = etas.pop()
+    rows, eta = judged_by(runs, rows, reflector)
     groups = defaultdict(list)
     for r, d in zip(rows, at):
         groups[d].append(r)

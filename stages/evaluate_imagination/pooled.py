@@ -43,6 +43,21 @@ def read_runs(folders: list[str | Path], all_policies: bool = False) -> tuple[li
     return runs, rows
 
 
+def judged_by(runs: list[tuple[dict, dict]], rows: list[dict], reflector: str | None = None) -> tuple[list[dict], float]:
+    """-> (the rows as `reflector` judges them, its eta): a further reflector that judged every run, or
+    (None) the runs' own reflector, whose etas must agree."""
+    if reflector is not None:
+        judges = set.intersection(*[set(s.get("judges", {})) for s, _ in runs])
+        if reflector not in judges:
+            raise ConfigError(f"{reflector} did not judge every run (all of them: {sorted(judges)})")
+        return [as_judged_by(r, reflector) for r in rows], runs[0][0]["judges"][reflector]["eta"]
+    etas = {s["eta"] for s, _ in runs}
+    if len(etas) != 1:
+        raise ConfigError(f"the runs judge at different etas {sorted(etas)}: pool runs of one reflector "
+                          "(or one further reflector of them all: --reflector)")
+    return rows, etas.pop()
+
+
 def pooled(folders: list[str | Path], ensemble: bool = False, all_policies: bool = False,
            reflector: str | None = None) -> dict[str, dict]:
     """-> {reflector: verdict metrics over the pooled pairs}; the runs must share eta and headline reflector.
@@ -50,16 +65,10 @@ def pooled(folders: list[str | Path], ensemble: bool = False, all_policies: bool
     only the headline policy's. `reflector`: only that further reflector's verdict, which its own eta
     fixes, so runs whose own reflectors differ pool too."""
     runs, rows = read_runs(folders, all_policies)
-    judges = set.intersection(*[set(s.get("judges", {})) for s, _ in runs])
     if reflector is not None:
-        if reflector not in judges:
-            raise ConfigError(f"{reflector} did not judge every run (all of them: {sorted(judges)})")
-        return {reflector: judged([as_judged_by(r, reflector) for r in rows], runs[0][0]["judges"][reflector]["eta"])}
-    etas = {s["eta"] for s, _ in runs}
-    if len(etas) != 1:
-        raise ConfigError(f"the runs judge at different etas {sorted(etas)}: pool runs of one reflector "
-                          "(or one further reflector of them all: --reflector)")
-    out = {"headline": judged(rows, etas.pop())}
+        return {reflector: judged(*judged_by(runs, rows, reflector))}
+    judges = set.intersection(*[set(s.get("judges", {})) for s, _ in runs])
+    out = {"headline": judged(*judged_by(runs, rows))}
     for name in sorted(judges):
         out[name] = judged([as_judged_by(r, name) for r in rows], runs[0][0]["judges"][name]["eta"])
     if ensemble and judges:
