@@ -91,14 +91,19 @@ def real_episodes_section(ctx: ReportContext) -> list[str]:
 
 
 def wall_time_section(ctx: ReportContext) -> list[str]:
-    rows = []
+    rows, runs = [], {}
     for r in _latest_by_tags(ctx):
         made = _producer(r, ctx.records)
         rows.append([r.stage, ", ".join(f"{k}={v}" for k, v in r.tags.items() if k != "task"), f"`{made.id}`",
                      f"{made.wall_time_s:.0f}"])
+        # one evaluation pass writes a record per termination mode, all with its config and start
+        runs[(made.stage, made.config_hash, made.started)] = made.wall_time_s
+    total = sum(runs.values())
     return titled("Wall time per stage", [
         "Newest run of each; a re-run that found the work done is timed by the run that produced its files "
-        "(its last sitting, if it was resumed).", "", *markdown_table(["stage", "tags", "record", "wall s"], rows)])
+        "(its last sitting, if it was resumed).", "", *markdown_table(["stage", "tags", "record", "wall s"], rows), "",
+        f"Total: {total:.0f} s ({int(total // 3600)} h {int(total % 3600 // 60):02d} min), the records of one "
+        "evaluation pass (`termination=all`) counted once."])
 
 
 if __name__ == "__main__":

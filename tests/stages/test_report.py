@@ -7,7 +7,7 @@ from stages.collect import evaluation as collect
 from stages.evaluate import evaluation as evaluate
 from stages.evaluate_imagination import evaluation as evaluate_imagination
 from stages.post_train_loop import evaluation as post_train_loop
-from stages.report import SECTIONS, write_report
+from stages.report import SECTIONS, wall_time_section, write_report
 from stages.train_reflector import evaluation as train_reflector
 from stages.train_worldsim import evaluation as train_worldsim
 from worldenv_core.manifest import Manifest, StageRun
@@ -114,6 +114,16 @@ def test_the_report_is_the_sections_in_order_then_wall_time(tmp_path):
     assert "| collect | scale=tiny, source=policy | training data: policy | 3 |" in accounting
     assert "| evaluate_imagination | eta=0.5, sampling_steps=None, scale=tiny | evaluation (paired replay) | 10 |" in accounting
     assert "Total: training data: 3, evaluation: 14." in accounting
+    wall = text.split("## Wall time per stage")[1]
+    total = sum(r.wall_time_s for r in m.records())  # every record here is its stage's newest, each its own run
+    assert f"Total: {total:.0f} s (0 h 00 min)" in wall
+    records = m.records()
+    for r in records:  # as if each had run for an hour, the two evaluations in one pass (same config and start)
+        r.wall_time_s = 3600.0
+        if r.stage == "evaluate":
+            r.config_hash, r.started = "one pass", "t0"
+    wall = "\n".join(wall_time_section(ReportContext(m, "tiny", tmp_path / "report", records)))
+    assert f"Total: {3600 * (len(records) - 1)} s ({len(records) - 1} h 00 min)" in wall
     ctx = ReportContext(m, "tiny", tmp_path / "report")
     for section in SECTIONS:  # every section's lines appear as it renders them
         assert "\n".join(section(ctx)) in text
