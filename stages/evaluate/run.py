@@ -6,11 +6,13 @@ from __future__ import annotations
 import logging
 from contextlib import ExitStack
 from datetime import datetime
+from itertools import chain
 from pathlib import Path
 
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
+from stages.evaluate.cache import JobCache
 from stages.evaluate.evaluation import record_mode
 from stages.report import write_report
 from worldenv_core.envs.collection import PolicyEvalJob, evaluate_policy_task
@@ -118,10 +120,21 @@ def run(cfg: DictConfig) -> dict:
                               eta=eta, view_through=view,
                               view_parts=tuple(cfg.view_parts))
                 for t in resolve_task_ids(task.suite, task.task_ids) for i in range(0, len(inits), JOB_SIZE)]
+        cache = JobCache(manifest.root) if cfg.reuse_jobs else None
+        finished = [cache.get(j) if cache else None for j in jobs]
+        todo = {(j.task_id, j.init_ids): j for j, got in zip(jobs, finished) if got is None}
+        reused = sum(len(got["rows"]) for got in finished if got) // len(modes)
+        if reused:
+            log.info("%d of %d jobs (%d episodes) were evaluated before with these weights and settings: reused from %s",
+                     len(jobs) - len(todo), len(jobs), reused, cache.root)
         rows, videos = [], {}
-        for out in run_jobs(evaluate_policy_task, jobs, workers=cfg.workers, launcher=cfg.launcher,
-                            desc=f"evaluate {task.name} on {suite} ({cfg.termination})", ray_address=cfg.ray_address,
-                            progress=cfg.progress, unit="job"):
+        ran = run_jobs(evaluate_policy_task, list(todo.values()), workers=cfg.workers, launcher=cfg.launcher,
+                       desc=f"evaluate {task.name} on {suite} ({cfg.termination})", ray_address=cfg.ray_address,
+                       progress=cfg.progress, unit="job")
+        for fresh, out in chain(((False, got) for got in finished if got), ((True, out) for out in ran)):
+            if cache and fresh:  # kept as it finishes: a killed evaluation resumes from here
+                first = out["rows"][0]
+                cache.put(todo[(first["task_id"], tuple(sorted({r["init_state"] for r in out["rows"]})))], out)
             rows += out["rows"]
             for i, frames in out["videos"].items():
                 videos[(out["rows"][0]["task_id"], i)] = frames
@@ -131,8 +144,10 @@ def run(cfg: DictConfig) -> dict:
                                           {"policy": policy_path, "init_states": cfg.init_states,
                                            "first_init_state": cfg.first_init_state, "suite": suite,
                                            "max_steps": max_steps}, reflector_path, eta, out_dir)
-            # termination=all: the modes share one rollout per episode, counted once (on the first mode)
-            stage.metrics["real_episodes"] = summaries[mode]["episodes"] if mode == modes[0] else 0
+            # termination=all: the modes share one rollout per episode, counted once (on the first mode);
+            # episodes reused from an earlier run of the same weights and settings cost none now
+            stage.metrics["real_episodes"] = summaries[mode]["episodes"] - reused if mode == modes[0] else 0
+            stage.metrics["reused_episodes"] = reused
             if view is not None:
                 stage.metrics["view_through"] = view
     report = write_report(manifest.root, task.name)  # the experiment's report, now with this evaluation
