@@ -37,7 +37,7 @@ def test_a_killed_evaluation_resumes_and_the_same_weights_are_not_run_again(tiny
     monkeypatch.setattr(evaluate_stage, "JOB_SIZE", 1)  # one job per init state
     exp = tiny_models
     common = ["policy_from=sft", "termination=oracle", "init_states=2", "workers=1", "progress=false",
-              "videos_per_task=0"]
+              "videos_per_task=0", "task.max_steps=24"]  # short episodes: what is kept matters here, not success
     first = evaluate_stage.run(stage_cfg("evaluate", exp, *common))
     m = Manifest(exp)
     assert m.latest("evaluate", task="tiny").metrics["real_episodes"] == 2
