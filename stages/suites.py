@@ -20,7 +20,7 @@ from pathlib import Path
 
 from stages.evaluate.evaluation import own_suite_evaluations
 from stages.evaluate.paired import compare
-from stages.evaluate_imagination.evaluation import TARGETS
+from stages.evaluate_imagination.evaluation import TARGETS, meets
 from worldenv_core.manifest import Manifest
 from worldenv_core.report import POLICIES, TERMINATIONS, ReportContext, markdown_table, newest
 
@@ -59,7 +59,7 @@ def limits(experiment: str | Path, task: str) -> dict:
         h = fidelity[-1].metrics.get("headline") or {}
         out["verdict"] = {k: h.get(k) for k in ("auroc", "f1", "hack_rate", "imagined_success", "real_success",
                                                  "rollouts")}
-        missed = [k for k in ("auroc", "f1", "hack_rate") if h.get(k) is not None and not _meets(k, h[k])]
+        missed = [k for k in ("auroc", "f1", "hack_rate") if h.get(k) is not None and not meets(k, h[k])]
         if missed:
             holds.append("verdict fidelity (" + ", ".join(missed) + " off target)")
         gap = None if h.get("imagined_success") is None or h.get("real_success") is None else \
@@ -81,11 +81,6 @@ def limits(experiment: str | Path, task: str) -> dict:
             holds.append("RL capacity (no real gain with the real simulator as environment)")
     out["holds"] = holds
     return out
-
-
-def _meets(key: str, value: float) -> bool:
-    op, target = TARGETS[key]
-    return value >= target if op == ">=" else value <= target
 
 
 def _pct(x: float | None) -> str:

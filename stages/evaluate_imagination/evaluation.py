@@ -212,11 +212,17 @@ def _num(x, digits: int = 3) -> str:
     return "" if x is None or (isinstance(x, float) and np.isnan(x)) else f"{x:.{digits}f}"
 
 
-def _mark(key: str, value) -> str:
+def meets(key: str, value: float) -> bool:
+    """Whether a verdict figure meets its target in TARGETS."""
     op, target = TARGETS[key]
+    return value >= target if op == ">=" else value <= target
+
+
+def _mark(key: str, value) -> str:
     if value is None or (isinstance(value, float) and np.isnan(value)):
         return ""
-    return " (met)" if (value >= target if op == ">=" else value <= target) else f" (target {op} {target:g})"
+    op, target = TARGETS[key]
+    return " (met)" if meets(key, value) else f" (target {op} {target:g})"
 
 
 def _sampler(tags: dict) -> str:
