@@ -117,6 +117,7 @@ class StageRecord:
     finished: str = ""
     wall_time_s: float = 0.0
     id: str = ""
+    repeats: str = ""  # the finished run whose outputs this one hands on unchanged (`StageRun.finished_before`)
 
     @classmethod
     def from_json(cls, d: dict) -> "StageRecord":
@@ -285,6 +286,35 @@ class StageRun:
                          None)
             out.append(first.id if first and mine else rid)
         return sorted(out)
+
+    def finished_before(self) -> StageRecord | None:
+        """The finished run this one would repeat, if any: the same stage and settings (config
+        hash), the same input files by content (call it once every input is `use`d), and every
+        output still on disk as recorded. The stage then returns that record's metrics, and this
+        run's record hands on its outputs and metrics (`repeats` names it; it is also the newest of
+        its stage for `latest`, as a run would be), so re-running `make pipeline` after a kill skips
+        finished stages instead of reloading their data and measuring them again. To run one
+        again, change a setting or remove one of its outputs (its report, say): it then resumes
+        from its work dir."""
+        used = {a.sha256 for a in self.record.input_files}
+        for rec in reversed(self.manifest.records()):
+            if (rec.stage, rec.config_hash) != (self.record.stage, self.record.config_hash) or not rec.outputs:
+                continue
+            if {a.sha256 for a in rec.input_files} != used:
+                continue
+            try:
+                for artefact in rec.outputs:
+                    artefact.verify(self.manifest.root)
+            except ArtefactError:
+                continue
+            log.info("%s finished before with these settings and inputs (record %s, %s); its outputs are intact, "
+                     "so it is not run again: change a setting or remove an output to redo it",
+                     rec.stage, rec.id, rec.finished)
+            self.record.outputs, self.record.repeats = list(rec.outputs), rec.repeats or rec.id
+            self.record.tags.update(rec.tags)
+            self.metrics.update(rec.metrics)
+            return rec
+        return None
 
     def add_output(self, path, kind: str = "") -> Artefact:
         art = self.manifest.artefact(path, kind)

@@ -98,15 +98,17 @@ def run(cfg: DictConfig) -> dict:
                                   "worldsim": _name(worldsim), "reflector": _name(reflector)})
         if cfg.contexts.source == "training":  # reflector training data, not a measurement: the report tells them apart
             stage.record.tags["contexts"] = "training"
+        # init-state contexts alone need no recorded episode: checkpoint folders are enough
+        held = (context_episodes(manifest, stage, contract, cfg.scale.name, worldsim, reflector, cfg.contexts.source)
+                if cfg.contexts.episodes_per_task and episode_frames(cfg) else [])
+        if (done := stage.finished_before()) is not None:
+            return done.metrics
         encoder = InstructionEncoder()
         encode = lambda s: encoder(s).to(device)  # noqa: E731
         env, camera = build_imagined_env(worldsim, reflector, eta, encode, cfg.horizon, cfg.sampling_steps, device, contract,
                                          cfg.sampler_noise)
         if camera != contract.cameras[0]:
             raise ConfigError(f"the world model imagines {camera!r} but task {contract.name} renders {contract.cameras[0]!r} first")
-        # init-state contexts alone need no recorded episode: checkpoint folders are enough
-        held = (context_episodes(manifest, stage, contract, cfg.scale.name, worldsim, reflector, cfg.contexts.source)
-                if cfg.contexts.episodes_per_task and episode_frames(cfg) else [])
         contexts, dropped = build_contexts(cfg, contract, held)
         if not contexts:
             raise ConfigError(f"no context left: every mid-episode frame failed to replay ({dropped[0]})")

@@ -99,6 +99,12 @@ def run(cfg: DictConfig) -> dict:
         policy, pmeta = load_checkpoint(policy_path, "policy", contract, device=str(device))
         task_ids = set(contract.resolved_task_ids())  # task.task_ids=[...] trains on those tasks' contexts only
         episodes = collected_episodes(manifest, stage, contract.name, cfg.scale.name, cfg.expert_only)
+        if not real:
+            worldsim_path = resolve_checkpoint(stage, cfg.worldsim_from, "train_worldsim", contract.name, cfg.scale.name)
+            reflector_path = resolve_checkpoint(stage, cfg.reflector_from, "train_reflector", contract.name, cfg.scale.name)
+        if (done := stage.finished_before()) is not None:
+            summarise_sweep(sweep, manifest, contract.name)
+            return done.metrics
 
         def chosen(starts: list[RealStart]) -> list[int]:
             """The starts of the tasks trained on (`task.task_ids`), less the mid-episode ones whose
@@ -122,8 +128,6 @@ def run(cfg: DictConfig) -> dict:
             starts, instructions = [starts[i] for i in keep], [instructions[i] for i in keep]
             n_contexts = len(starts)
         else:
-            worldsim_path = resolve_checkpoint(stage, cfg.worldsim_from, "train_worldsim", contract.name, cfg.scale.name)
-            reflector_path = resolve_checkpoint(stage, cfg.reflector_from, "train_reflector", contract.name, cfg.scale.name)
             eta = reflector_eta(reflector_path, cfg.eta)
             stage.record.tags["eta"] = eta  # the threshold used, also when it is the reflector's own
             env, camera = build_imagined_env(worldsim_path, reflector_path, eta, encode, rl.horizon, rl.sampling_steps,
@@ -200,7 +204,11 @@ def run(cfg: DictConfig) -> dict:
                               "kept_groups": float(np.mean([h["kept_groups"] for h in history if "kept_groups" in h]
                                                            or [float("nan")]))})
         log.info("post-trained policy saved to %s; metrics %s", final, json.dumps(stage.metrics))
-    if sweep:  # the sweep's summary so far, beside its runs (the report draws it again)
-        log.info("sweep summary: %s", write_summary(sweep, manifest.find("post_train_loop", task=contract.name,
-                                                                         sweep=sweep.name)))
+    summarise_sweep(sweep, manifest, contract.name)
     return stage.metrics
+
+
+def summarise_sweep(sweep, manifest, task: str) -> None:
+    """The sweep's summary so far, beside its runs (the report draws it again)."""
+    if sweep:
+        log.info("sweep summary: %s", write_summary(sweep, manifest.find("post_train_loop", task=task, sweep=sweep.name)))

@@ -63,6 +63,8 @@ def run(cfg: DictConfig) -> dict:
         key = config
         if not cfg.train.imagined_proprio:  # added later: off keeps earlier work dirs
             key = {**config, "train": {k: v for k, v in config["train"].items() if not k.startswith("imagined_proprio")}}
+        if (done := stage.finished_before()) is not None:
+            return done.metrics
         work = work_dir(cfg.experiment_dir, "train_policy", key, stage.work_inputs())
         stage.lock(work)  # one run at a time trains into a work dir
         data = EpisodeDataset(paths, cameras=list(contract.cameras), mode="chunk", chunk=contract.chunk,

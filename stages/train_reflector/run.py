@@ -106,6 +106,8 @@ def run(cfg: DictConfig) -> dict:
             worldsim = resolve_checkpoint(stage, cfg.imagined.worldsim_from, "train_worldsim", contract.name,
                                           cfg.scale.name)
             key["imagined_from"] = Path(worldsim).parent.name
+        if (done := stage.finished_before()) is not None:
+            return done.metrics
         if cfg.train.with_imagined:  # the world simulator's replays of the training episodes, real labels
             dreamed = imagined_copies(cfg, contract, worldsim, episodes)
         # named by what defines the training and its inputs, not by how it is evaluated, shown or

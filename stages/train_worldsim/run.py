@@ -75,6 +75,8 @@ def run(cfg: DictConfig) -> dict:
                 if cfg.init_from else None)
         base_model, base_meta = load_checkpoint(base, "worldsim", contract) if base else (None, None)
         paths = collected_episodes(manifest, stage, contract.name, cfg.scale.name, cfg.expert_only)
+        if (done := stage.finished_before()) is not None:
+            return done.metrics
         _, held, episodes, held_eps = load_split(paths, cfg.holdout_every, cfg.camera,
                                                  base_meta["held_out"] if base else None)
         work = work_dir(cfg.experiment_dir, "train_worldsim", config, stage.work_inputs())

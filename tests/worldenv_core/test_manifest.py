@@ -87,3 +87,34 @@ def test_a_rerun_that_hands_on_the_same_files_names_the_same_work(tmp_path):
             names[upstream.id] = run.work_inputs()
         assert run.record.inputs == [upstream.id]  # the record still names what it read
     assert names[rerun.id] == names[first.id] == [first.id] and names[other.id] == [other.id]
+
+
+def test_a_finished_run_is_found_by_settings_inputs_and_intact_outputs(tmp_path):
+    m = Manifest(tmp_path / "exp")
+    _stage(m, tmp_path, "collect", {"task": "goal"})
+
+    def train(config, content=b"w"):
+        """A stage that reads the collection and, unless it finished before, writes `content`;
+        its record (the newest), and the run's that produced its outputs."""
+        with StageRun(m, "train", {"task": "goal"}, config) as run:
+            run.use(m.latest("collect"))
+            if run.finished_before() is None:
+                f = tmp_path / "weights.bin"
+                f.write_bytes(content)
+                run.add_output(f, kind="checkpoint")
+        rec = m.latest("train")
+        return rec, rec.repeats or rec.id
+
+    first, _ = train({"lr": 1})
+    repeat, producer = train({"lr": 1})  # repeated: its record hands on the first one's outputs
+    assert repeat.id != first.id and producer == first.id and repeat.outputs == first.outputs
+    assert repeat.metrics == first.metrics and repeat.tags == first.tags
+    assert train({"lr": 2})[1] != first.id  # other settings
+    assert train({"lr": 1})[1] == first.id  # the newest again, for `latest`
+    (tmp_path / "weights.bin").write_bytes(b"v")  # an output changed: the run is done again
+    redone, producer = train({"lr": 1}, b"v")
+    assert producer == redone.id != first.id
+    assert train({"lr": 1}, b"v")[1] == redone.id  # and that one is found next time
+    _stage(m, tmp_path, "collect", {"task": "goal"}, b"other")  # other input content
+    other, producer = train({"lr": 1}, b"v")
+    assert producer == other.id != redone.id

@@ -41,9 +41,13 @@ def test_train_policy_records_a_loadable_checkpoint_and_a_loss_plot(experiment):
 
 def test_train_policy_resumes_from_its_last_checkpoint(experiment):
     exp, _, small = experiment
-    # Same config -> same work dir; everything is done already, so it only re-saves.
-    metrics = train_policy(cfg("train_policy", exp, *small))
-    assert metrics["train_wall_s"] < 5
+    # Same settings and inputs, outputs intact: the finished run is not repeated; its record hands it on
+    first = Manifest(exp).latest("train_policy")
+    assert train_policy(cfg("train_policy", exp, *small)) == first.metrics
+    assert Manifest(exp).latest("train_policy").repeats == (first.repeats or first.id)
+    # shown otherwise (another logger): the same work dir, finished, so it resumes at the end and only re-saves
+    metrics = train_policy(cfg("train_policy", exp, *small, "logger=none"))
+    assert metrics["train_wall_s"] < 5 and not Manifest(exp).latest("train_policy").repeats
 
 
 def test_too_few_demos_is_a_clear_error(experiment):

@@ -56,7 +56,8 @@ def test_train_reflector_records_checkpoint_and_report(trained, contract):
 
 def test_train_reflector_resumes_and_rejects_bad_settings(trained):
     exp, _ = trained
-    assert train_reflector(cfg("train_reflector", exp, *SMALL, "expert_only=true"))["train_wall_s"] < 5
+    train_reflector(cfg("train_reflector", exp, *SMALL, "expert_only=true"))  # finished, outputs intact: not run again
+    assert Manifest(exp).latest("train_reflector").repeats
     # evaluation-only settings do not name the run: it is re-evaluated, not trained again
     assert train_reflector(cfg("train_reflector", exp, *SMALL, "expert_only=true", "plots=0"))["train_wall_s"] < 5
     with pytest.raises(ArtefactError, match="train_worldsim-000000000000"):

@@ -54,8 +54,12 @@ def test_train_worldsim_records_checkpoint_fidelity_and_resumes(demo_experiment,
     assert model.sampling_steps == 2 and model.detail_gate == 0.3 and set(meta["cameras"]) == {"0"}
     assert metrics["held_out"] == 1 and metrics["episodes"] == 1
 
-    again = train_worldsim(cfg(exp, "expert_only=true"))  # same config: resumes at the end, trains nothing
-    assert again["train_wall_s"] < 5
+    again = train_worldsim(cfg(exp, "expert_only=true"))  # same settings and inputs, outputs intact: not run again
+    assert again["train_wall_s"] == metrics["train_wall_s"]
+    assert Manifest(exp).latest("train_worldsim", task="tiny", data="expert").repeats == rec.id
+    files["fidelity.md"].unlink()  # an output gone: it runs again, resuming at the end (trains nothing)
+    again = train_worldsim(cfg(exp, "expert_only=true"))
+    assert again["train_wall_s"] < 5 and not Manifest(exp).latest("train_worldsim", task="tiny", data="expert").repeats
 
 
 def test_fidelity_tool_reproduces_the_recorded_report_and_sweeps_the_detail_gate(demo_experiment):
