@@ -15,7 +15,10 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from worldenv_core.kinematics.next_state import axis_angle_to_matrix
 from worldenv_core.robot import ACTION_DIM, PROPRIO_DIM
+
+ROTATION_INPUTS = ("vector", "matrix")
 
 
 def mlp(d_in: int, hidden: int, d_out: int, layers: int = 2) -> nn.Sequential:
@@ -53,19 +56,29 @@ class LaplacePolicy(nn.Module):
         chunk: K actions per prediction. hidden: width of f and of both heads.
         beta_min/beta_max: the scale head's log-scale range (soft-clamped), so exploration noise
         can neither vanish nor swamp the action.
+        proprio_rotation: how the end-effector's rotation vector (proprio 3:6) enters. "matrix": as
+        the first two columns of its rotation matrix, continuous in the orientation. "vector": as
+        it is (checkpoints from before this option): its angle is kept in [0, pi], so at LIBERO's
+        gripper-down pose (a half turn about x) it jumps between about +pi and -pi with sub-degree
+        jitter, 5-11 times in a recorded episode, and a benchmark init state starts on either side.
     """
 
     def __init__(self, backbone: nn.Module, cameras: list[str], chunk: int = 8, hidden: int = 512,
                  instruction_dim: int = 384, proprio_dim: int = PROPRIO_DIM, action_dim: int = ACTION_DIM,
-                 head_layers: int = 2, beta_min: float = -7.0, beta_max: float = 1.0):
+                 head_layers: int = 2, beta_min: float = -7.0, beta_max: float = 1.0,
+                 proprio_rotation: str = "vector"):
         super().__init__()
+        if proprio_rotation not in ROTATION_INPUTS:
+            raise ValueError(f"proprio_rotation must be one of {ROTATION_INPUTS}, got {proprio_rotation!r}")
+        self.proprio_rotation = proprio_rotation
         self.cameras, self.chunk, self.action_dim = list(cameras), int(chunk), int(action_dim)
         self.proprio_dim, self.instruction_dim = int(proprio_dim), int(instruction_dim)
         self.beta_min, self.beta_max = float(beta_min), float(beta_max)
         self.backbone = backbone
         self.proprio_norm = Normalizer(proprio_dim)
         self.action_norm = Normalizer(action_dim)
-        self.proprio_proj = nn.Sequential(nn.Linear(proprio_dim, 64), nn.GELU())
+        # the matrix's 6 entries replace the vector's 3 (they are in [-1, 1]: not normalised)
+        self.proprio_proj = nn.Sequential(nn.Linear(proprio_dim + 3 * (proprio_rotation == "matrix"), 64), nn.GELU())
         self.lang_proj = nn.Sequential(nn.Linear(instruction_dim, 128), nn.GELU())
         self.trunk = mlp(backbone.out_dim + 64 + 128, hidden, hidden, layers=1)
         out = self.chunk * self.action_dim
@@ -76,8 +89,17 @@ class LaplacePolicy(nn.Module):
         """The hidden state f. images: camera -> (B, 3, H, W) uint8 or float in [0, 1]."""
         imgs = {c: (images[c].float() / 255.0 if images[c].dtype == torch.uint8 else images[c]) for c in self.cameras}
         vis = self.backbone(imgs, instruction)
-        return self.trunk(torch.cat([vis, self.proprio_proj(self.proprio_norm(proprio)),
+        return self.trunk(torch.cat([vis, self.proprio_proj(self.proprio_features(proprio)),
                                      self.lang_proj(instruction)], dim=-1))
+
+    def proprio_features(self, proprio: torch.Tensor) -> torch.Tensor:
+        """What the proprio projection sees: the normalised proprio, its rotation vector replaced by
+        the rotation matrix's first two columns with `proprio_rotation="matrix"`."""
+        normed = self.proprio_norm(proprio)
+        if self.proprio_rotation == "vector":
+            return normed
+        columns = axis_angle_to_matrix(proprio[..., 3:6].float())[..., :2].flatten(-2)
+        return torch.cat([normed[..., :3], columns, normed[..., 6:]], dim=-1)
 
     def forward(self, images, proprio, instruction) -> tuple[torch.Tensor, torch.Tensor]:
         """-> mu, beta, each (B, K, action_dim), in normalised action space."""

@@ -33,6 +33,26 @@ def test_heads_have_the_same_shape_and_beta_is_bounded():
     assert [p.shape for p in model.action_head.parameters()] == [p.shape for p in model.scale_head.parameters()]
 
 
+def test_the_rotation_enters_continuously_as_a_matrix():
+    """At the gripper-down pose (a half turn about x) the recorded rotation vector jumps between
+    about +pi and -pi: as a matrix the policy sees one orientation; as a vector (checkpoints from
+    before the option, whose configs lack it) two inputs far apart."""
+    images, proprio, instruction = fake_inputs(b=2)
+    down = torch.tensor([np.pi - 1e-3, 0.0, 0.02])
+    flipped = down - 2 * np.pi * down / down.norm()  # the same rotation, angle 2 pi - |down| about -axis
+    proprio[0, 3:6], proprio[1, 3:6] = down, flipped
+    torch.manual_seed(0)
+    matrix = instantiate({**small_config(), "proprio_rotation": "matrix"}).eval()
+    features = matrix.proprio_features(proprio)
+    assert features.shape == (2, 10) and torch.allclose(features[0, 3:9], features[1, 3:9], atol=1e-5)
+    assert matrix(images, proprio, instruction)[0].shape == (2, 4, 7)
+    vector = instantiate(small_config())
+    assert vector.proprio_rotation == "vector" and vector.proprio_features(proprio).shape == (2, 7)
+    assert (vector.proprio_features(proprio)[0, 3] - vector.proprio_features(proprio)[1, 3]).abs() > 6
+    with pytest.raises(Exception, match="proprio_rotation must be one of"):
+        instantiate({**small_config(), "proprio_rotation": "quaternion"})
+
+
 @pytest.mark.sim
 def test_a_tiny_policy_overfits_a_handful_of_real_frames(tiny_env):
     """Real LIBERO frames and a real instruction; the action chunk to fit is arbitrary but fixed."""
