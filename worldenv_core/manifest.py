@@ -298,13 +298,11 @@ class StageRun:
         from its work dir."""
         used = {a.sha256 for a in self.record.input_files}
         for rec in reversed(self.manifest.records()):
-            if (rec.stage, rec.config_hash) != (self.record.stage, self.record.config_hash) or not rec.outputs:
-                continue
-            if {a.sha256 for a in rec.input_files} != used:
+            if ((rec.stage, rec.config_hash) != (self.record.stage, self.record.config_hash) or not rec.outputs
+                    or {a.sha256 for a in rec.input_files} != used):
                 continue
             try:
-                for artefact in rec.outputs:
-                    artefact.verify(self.manifest.root)
+                self.manifest.resolve(rec)  # every output still as recorded
             except ArtefactError:
                 continue
             log.info("%s finished before with these settings and inputs (record %s, %s); its outputs are intact, "
