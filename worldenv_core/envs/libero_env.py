@@ -22,6 +22,11 @@ from worldenv_core.robot import ACTION_DIM, gripper_opening
 os.environ.setdefault("MUJOCO_GL", "egl")
 log = logging.getLogger(__name__)
 
+# The arm's start on a sampled reset: robosuite's "default" initialization noise, Gaussian with this
+# standard deviation (rad) on each joint. LIBERO's benchmark init states were made with it (their
+# joints spread by 0.018-0.021 rad about the nominal pose); LIBERO's own env turns it off, so without
+# it every demo would start from one pose that no benchmark episode starts from.
+ARM_START_NOISE = 0.02
 
 
 class SimulationError(RuntimeError):
@@ -69,9 +74,15 @@ class LiberoEnv:
         cameras: cameras `render()` returns by default (e.g. agentview, robot0_eye_in_hand).
         image_size: square render resolution in pixels.
         render: False builds a physics-only env (no offscreen renderer), for work that keeps no images.
+        arm_start_noise: std (rad) of the joint noise of a sampled reset (`ARM_START_NOISE`, as the
+            benchmark's); 0 starts every sampled episode from the one nominal pose. An init state
+            restores the joints it recorded either way.
     """
 
-    def __init__(self, suite: str, task_id: int, cameras=("agentview",), image_size: int = 128, render: bool = True):
+    def __init__(self, suite: str, task_id: int, cameras=("agentview",), image_size: int = 128, render: bool = True,
+                 arm_start_noise: float = ARM_START_NOISE):
+        if not arm_start_noise >= 0:
+            raise ValueError(f"arm_start_noise must be >= 0 (rad), got {arm_start_noise}")
         self.task: TaskSpec = get_task(suite, task_id)
         self.cameras = list(cameras)
         self.image_size = int(image_size)
@@ -87,6 +98,7 @@ class LiberoEnv:
                 camera_heights=self.image_size,
                 camera_widths=self.image_size,
                 ignore_done=True,  # the episode length is ours to decide, not robosuite's horizon
+                initialization_noise={"magnitude": float(arm_start_noise), "type": "gaussian"},
             )
         self._obs: dict | None = None
 
@@ -114,7 +126,7 @@ class LiberoEnv:
         `init_state=None`, to a fresh random placement drawn from `seed`.
 
         The seed matters in both cases: LIBERO's reset re-samples the *fixtures'* placement
-        (cabinets, stoves: model.body_pos) from numpy's global RNG, and an init state restores
+        (cabinets, stoves: model.body_pos) and the arm's start from numpy's global RNG, and an init state restores
         only qpos/qvel, so an unseeded reset is not reproducible. `seed=None` means seed 0."""
         self._env.seed(int(seed) if seed is not None else 0)
         self._obs = self._env.reset()

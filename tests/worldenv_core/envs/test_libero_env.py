@@ -68,3 +68,24 @@ def test_bad_actions_are_rejected(tiny_env):
         tiny_env.step(np.zeros(6))
     with pytest.raises(ValueError, match="non-finite"):
         tiny_env.step(np.array([np.nan] * 7))
+
+
+def test_a_sampled_reset_starts_the_arm_as_the_benchmark_does(tiny_env):
+    """Joint noise as in the benchmark's init states (std ARM_START_NOISE), repeatable per seed;
+    an init state keeps the joints it recorded."""
+    from worldenv_core.envs.libero_env import ARM_START_NOISE
+
+    joints = np.array([tiny_env.reset(seed=s).joint_pos for s in range(12)])
+    assert 0.5 * ARM_START_NOISE < joints.std(0).mean() < 2 * ARM_START_NOISE
+    assert np.array_equal(tiny_env.reset(seed=3).joint_pos, joints[3])
+    recorded = tiny_env.reset(init_state=5, seed=1).joint_pos
+    assert np.array_equal(recorded, tiny_env.reset(init_state=5, seed=2).joint_pos)
+
+
+def test_no_arm_start_noise_is_one_pose_and_bad_noise_is_refused():
+    from worldenv_core.envs.libero_env import LiberoEnv
+
+    with pytest.raises(ValueError, match="arm_start_noise"):
+        LiberoEnv("libero_object", 0, arm_start_noise=-0.1)
+    with LiberoEnv("libero_object", 0, cameras=(), render=False, arm_start_noise=0.0) as env:
+        assert np.array_equal(env.reset(seed=1).joint_pos, env.reset(seed=2).joint_pos)
