@@ -9,6 +9,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, ListConfig
 
+from worldenv_core.envs.libero_env import ARM_START_NOISE
 from worldenv_core.manifest import config_hash
 
 
@@ -36,6 +37,8 @@ def episode_dir(cfg: DictConfig) -> Path:
                 "max_steps": task.max_steps}
     if cfg.post_success_steps:  # (only when set, so earlier collections keep their folders)
         defining["post_success_steps"] = cfg.post_success_steps
+    if cfg.init_states == "sampled":  # the arm's start noise (sampled resets before it kept the nominal pose)
+        defining["arm_start_noise"] = ARM_START_NOISE
     if cfg.source == "expert":  # episodes of a changed expert are other episodes: never mix them
         defining["expert_code"] = expert_code_hash()
     if cfg.source == "policy":
