@@ -31,7 +31,8 @@ def test_replaying_a_recorded_episode_from_a_middle_frame_reproduces_its_outcome
         for t, img in out["frames"].items():  # every rendered chunk boundary, the same image: physics replays
             diff = np.abs(img.astype(int) - ep.images["agentview"][f + t])  # to ~1e-7, which moves a pixel or two
             assert diff.max() <= 1 and (diff > 0).sum() <= 4, f"frame {f + t} differs"  # by one grey level at most
-        assert len(out["frames"]) == len(range(0, ep.length - f, c.chunk)) + ((ep.length - f) % c.chunk != 0)
+        # the start, every chunk boundary up to the end, and the end
+        assert len(out["frames"]) == len(range(0, ep.length - f + 1, c.chunk)) + ((ep.length - f) % c.chunk != 0)
 
 
 def test_other_actions_change_the_outcome_and_a_wrong_prefix_is_caught(demo, contract):
