@@ -23,9 +23,9 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 log = logging.getLogger(__name__)
 
 # The arm's start on a sampled reset: robosuite's "default" initialization noise, Gaussian with this
-# standard deviation (rad) on each joint. LIBERO's benchmark init states were made with it (their
-# joints spread by 0.016-0.021 rad, libero_object tasks 0 and 1 about the nominal pose); LIBERO's own env turns it off, so without
-# it every demo would start from one pose that no benchmark episode starts from.
+# standard deviation (rad) on each joint. LIBERO's benchmark init states were made with it (in
+# libero_object tasks 0 and 1 their joints spread by 0.016-0.021 rad about the nominal pose); LIBERO's
+# own env turns it off, so without it every demo would start from one pose no benchmark episode starts from.
 ARM_START_NOISE = 0.02
 
 
