@@ -174,7 +174,12 @@ def further_reflectors(cfg, stage, contract, camera: str, contexts) -> list[Judg
 def variant_key(v: Variant) -> str:
     """A policy variant's pairs file in the work dir, named by the policy's weights (by content: the
     same checkpoint from another clone, worktree or folder finds its pairs), noise and pairing."""
-    return config_hash({"policy": sha256_file(Path(v.path) / WEIGHTS), "noise": v.noise_scale, "paired": v.paired})
+    return pairs_key(sha256_file(Path(v.path) / WEIGHTS), v.noise_scale, v.paired)
+
+
+def pairs_key(weights_sha256: str, noise_scale: float = 1.0, paired: bool = True) -> str:
+    """The pairs file's name for a policy's weights (by their hash), noise scale and pairing."""
+    return config_hash({"policy": weights_sha256, "noise": float(noise_scale), "paired": paired})
 
 
 def _name(checkpoint: str) -> str:

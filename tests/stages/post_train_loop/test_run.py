@@ -244,3 +244,32 @@ def test_loop_from_a_context_pack_trains_as_the_stage_does_without_episodes_or_e
     assert (final / "model.safetensors").read_bytes() == weights
     with pytest.raises(ValueError, match="not a context pack"):
         from_pack.main([str(folder("train_policy") / "model.safetensors"), *args[1:]])
+
+
+    # measured back here, as a point of a sweep: real success against the starting policy's on the same
+    # episodes, and the paired hack rate of both from the evaluate_imagination run that replayed them
+    from stages.evaluate.run import run as evaluate
+    from stages.evaluate_imagination.run import run as evaluate_imagination
+    from stages.post_train_loop import sweep
+
+    real = ["termination=oracle", "init_states=2", "workers=1", "progress=false", "videos_per_task=0"]
+    evaluate(cfg("evaluate", exp, f"policy_from={folder('train_policy')}", *real))
+    start = m.latest("evaluate", task="tiny").id
+    evaluate(cfg("evaluate", exp, f"policy_from={final}", *real))
+    evaluate_imagination(cfg("evaluate_imagination", exp, f"policies=[{folder('train_policy')},{final}]",
+                             "paired_policies=2", "horizon=16", "contexts.init_states=1", "contexts.episodes_per_task=0",
+                             "rollouts=2", "closed_loop_rollouts=0", "gifs=0", "workers=1", "progress=false"))
+    sweep.main([str(exp), "--packs", str(tmp_path / "w"), "--baseline", start, "--out", str(tmp_path / "summary")])
+    row, = json.loads((tmp_path / "summary" / "sweep_summary.json").read_text())
+    assert (row["eta"], row["n_rollouts"], row["iterations"], row["run"]) == (0.5, 2, 2, "w")
+    assert row["real_episodes"] == m.get(start).metrics["episodes"] and row["real_p"] is not None
+    assert row["real_records"] == [m.latest("evaluate", task="tiny").id]
+    assert row["real_success_first"] == m.get(start).metrics["success_rate"]
+    replayed = m.latest("evaluate_imagination", task="tiny")
+    assert row["paired_records"] == [replayed.id]
+    per_policy = json.loads(next(m.root / f.path for f in replayed.outputs if f.path.endswith("fidelity.json"))
+                            .read_text())["per_policy"]
+    said = [per_policy[f"{name}@1"]["hack_rate"] for name in (folder("train_policy"), final)]  # NaN: no imagined success
+    assert json.dumps([row["paired_hack_rate_first"], row["paired_hack_rate_last"]]) == json.dumps(said)
+    assert row["imagined_reward_first"] == next(h["imagined_reward"] for h in history if "imagined_reward" in h)
+    assert (tmp_path / "summary" / "sweep_summary.png").is_file()
