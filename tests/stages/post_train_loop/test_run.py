@@ -250,7 +250,7 @@ def test_loop_from_a_context_pack_trains_as_the_stage_does_without_episodes_or_e
     # episodes, and the paired hack rate of both from the evaluate_imagination run that replayed them
     from stages.evaluate.run import run as evaluate
     from stages.evaluate_imagination.run import run as evaluate_imagination
-    from stages.post_train_loop import sweep
+    from stages.post_train_loop import sweep_packs
 
     real = ["termination=oracle", "init_states=2", "workers=1", "progress=false", "videos_per_task=0"]
     evaluate(cfg("evaluate", exp, f"policy_from={folder('train_policy')}", *real))
@@ -259,7 +259,7 @@ def test_loop_from_a_context_pack_trains_as_the_stage_does_without_episodes_or_e
     evaluate_imagination(cfg("evaluate_imagination", exp, f"policies=[{folder('train_policy')},{final}]",
                              "paired_policies=2", "horizon=16", "contexts.init_states=1", "contexts.episodes_per_task=0",
                              "rollouts=2", "closed_loop_rollouts=0", "gifs=0", "workers=1", "progress=false"))
-    sweep.main([str(exp), "--packs", str(tmp_path / "w"), "--baseline", start, "--out", str(tmp_path / "summary")])
+    sweep_packs.main([str(exp), "--packs", str(tmp_path / "w"), "--baseline", start, "--out", str(tmp_path / "summary")])
     row, = json.loads((tmp_path / "summary" / "sweep_summary.json").read_text())
     assert (row["eta"], row["n_rollouts"], row["iterations"], row["run"]) == (0.5, 2, 2, "w")
     assert row["real_episodes"] == m.get(start).metrics["episodes"] and row["real_p"] is not None
