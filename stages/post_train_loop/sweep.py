@@ -106,4 +106,3 @@ def write_summary(folder: Path, runs: list[StageRecord] | None = None, rows: lis
                        ("sweep_summary.md", "\n".join(summary_table(rows)) + "\n")):
         write_text_atomic(folder / name, text)
     return plot_summary(rows, folder / "sweep_summary.png")
-

@@ -38,6 +38,10 @@ def pack_rows(manifest: Manifest, packs: list[Path], baseline: list[str]) -> lis
             weights_of[folder] = sha256_file(f) if f.is_file() else None
         return weights_of[folder]
 
+    # the oracle evaluations other than the baseline's, by the policy folder each evaluated
+    oracle = [(r.id, r.metrics["policy"], Path(r.metrics["policy"]).resolve()) for r in records
+              if r.stage == "evaluate" and r.metrics.get("termination") == "oracle" and "policy" in r.metrics
+              and r.id not in baseline]
     rows = []
     for work in packs:
         work = Path(work)
@@ -47,10 +51,9 @@ def pack_rows(manifest: Manifest, packs: list[Path], baseline: list[str]) -> lis
         eta, own = meta["trained_from"]["eta"], weights(str(work / "policy"))
         # real success: every oracle evaluation of this folder, pooled (else of a copy of its weights elsewhere),
         # against the baseline on the same episodes
-        oracle = [r for r in records if r.stage == "evaluate" and r.metrics.get("termination") == "oracle"
-                  and r.id not in baseline]
-        evals = [r.id for r in oracle if Path(r.metrics.get("policy", "")).resolve() == (work / "policy").resolve()]
-        evals = evals or [r.id for r in oracle if weights(r.metrics.get("policy", "")) == own][-1:]
+        here = (work / "policy").resolve()
+        evals = [rid for rid, _, resolved in oracle if resolved == here]
+        evals = evals or [rid for rid, policy, _ in oracle if weights(policy) == own][-1:]
         real = compare(base, pooled_episodes(manifest, evals)[0]) if evals else None
         history = json.loads((work / "history.json").read_text())
         imagined = [h for h in history if "imagined_reward" in h]
@@ -79,7 +82,7 @@ def _hack_rates(manifest: Manifest, records, eta: float, start: str, own: str):
     for rec in reversed(records):
         if rec.stage != "evaluate_imagination" or rec.metrics.get("eta") != eta:
             continue
-        fidelity = [o.path for o in rec.outputs if o.path.endswith("fidelity.json")]
+        fidelity = [a.path for a in rec.files("report") if Path(a.path).name == "fidelity.json"]
         if not fidelity:
             continue
         work = manifest.root / Path(fidelity[0]).parent  # the run's work dir: its pairs files

@@ -245,7 +245,6 @@ def test_loop_from_a_context_pack_trains_as_the_stage_does_without_episodes_or_e
     with pytest.raises(ValueError, match="not a context pack"):
         from_pack.main([str(folder("train_policy") / "model.safetensors"), *args[1:]])
 
-
     # measured back here, as a point of a sweep: real success against the starting policy's on the same
     # episodes, and the paired hack rate of both from the evaluate_imagination run that replayed them
     from stages.evaluate.run import run as evaluate
