@@ -12,7 +12,7 @@ export MUJOCO_GL ?= egl
 export HF_HUB_OFFLINE := 1
 export TOKENIZERS_PARALLELISM := false
 
-.PHONY: setup test test-fast faults smoke pipeline suites eval-release fidelity bench cost-model expert-table tensorboard clean
+.PHONY: setup test test-fast faults smoke pipeline suites suites-table eval-release fidelity bench cost-model expert-table tensorboard clean
 
 setup: $(STAMP)
 
@@ -81,6 +81,11 @@ SUITES ?= libero_goal libero_object libero_spatial
 suites: setup
 	for t in $(SUITES); do $(MAKE) pipeline TASK=$$t SCALE=$(SCALE) EXP=outputs/$$t-$(SCALE) || exit 1; done
 	$(PY) -m stages.suites outputs/suites $(foreach t,$(SUITES),$(t)=outputs/$(t)-$(SCALE))
+
+# The same table from the evaluations kept in the repository (results/suites.yaml names them):
+# results/suites.md, no simulator, seconds.
+suites-table: setup
+	$(PY) -m stages.suites --kept results/suites.yaml
 
 # A suite's Table 1 row from its released checkpoints (checkpoints/<suite>/sft and post_trained, where
 # released), without retraining: every termination on the first RELEASE_INIT benchmark init states, judged

@@ -47,3 +47,75 @@ def test_which_limit_holds_is_read_off_the_verdict_the_loop_and_the_real_referen
             "fidelity (auroc, f1, hack_rate off target); world-model drift") in text
     assert "| other | not measured |  |  | not run | none measured |" in text
     assert limits(tmp_path / "b", "tiny") == {"holds": []}
+
+
+def _kept_evaluation(root, suite, name, policy, termination, outcomes):
+    """An evaluation folder as `stages.evaluate.keep` leaves it: {(task, init state): success}."""
+    folder = root / suite / name
+    folder.mkdir(parents=True)
+    (folder / "results.json").write_text(json.dumps({"policy": policy, "termination": termination, "suite": suite,
+                                                     "success_rate": sum(outcomes.values()) / len(outcomes)}))
+    (folder / "episodes.json").write_text(json.dumps([{"task_id": t, "init_state": i, "success": s}
+                                                      for (t, i), s in outcomes.items()]))
+
+
+def test_the_kept_table_pools_each_sides_folders_and_pairs_them_by_episode(tmp_path):
+    """`--kept`: the table from evaluations kept in the repository, no experiment directory."""
+    from stages.suites import kept_rows
+
+    _kept_evaluation(tmp_path, "libero_goal", "evaluate-s1", "checkpoints/g/sft", "oracle", {(0, 0): True, (0, 1): False})
+    _kept_evaluation(tmp_path, "libero_goal", "evaluate-s2", "checkpoints/g/sft", "oracle", {(1, 2): False, (1, 3): False})
+    _kept_evaluation(tmp_path, "libero_goal", "evaluate-p1", "post/policy", "oracle",
+                     {(0, 0): True, (0, 1): True, (1, 2): True, (1, 3): True, (1, 4): True})  # (1, 4): unpaired
+    fidelity = {"headline_policy": "sft@1", "headline": {"rollouts": 8, "imagined_success": 0.5, "real_success": 0.0,
+                                                         "hack_rate": 1.0, "auroc": float("nan"), "f1": 0.0}}
+    (tmp_path / "libero_goal" / "evaluate_imagination-v").mkdir()
+    (tmp_path / "libero_goal" / "evaluate_imagination-v" / "fidelity.json").write_text(json.dumps(fidelity))
+    spec = tmp_path / "suites.yaml"
+    spec.write_text(
+        "rows:\n- suite: libero_goal\n  sft: {policy: SFT, oracle: [evaluate-s1, evaluate-s2]}\n"
+        "  post_trained: {policy: LOOP, oracle: [evaluate-p1]}\n  note: n\n"
+        "verdicts:\n- {suite: libero_goal, run: evaluate_imagination-v, contexts: starts}\n")
+    rows, verdicts = kept_rows(spec)
+    assert rows[0]["oracle"] == {"sft": 0.25, "post_trained": 1.0, "episodes": 4, "only_a": 0, "only_b": 3,
+                                 "p_value": 0.25}
+    assert "fixed" not in rows[0]
+    # a NaN AUROC (no real success among the pairs) is unmeasured, not off target
+    assert verdicts[0]["holds"] == ["verdict fidelity (f1, hack_rate off target)",
+                                    "world-model drift (imagined - real +50 points)"]
+    main(["--kept", str(spec)])
+    text = (tmp_path / "suites.md").read_text()
+    assert "| libero_goal | SFT | LOOP | 25.0 % -> 100.0 % | +75.0 | 0 / 3 | 0.25 | 4 |  |  | n |" in text
+    assert "| libero_goal | sft@1 | starts | 8 | 50.0 % | 0.0 % | 100.0 % |" in text
+
+
+def test_the_kept_spec_is_checked_before_anything_is_read(tmp_path):
+    import pytest
+
+    from stages.suites import kept_rows
+    from worldenv_core.errors import ConfigError
+
+    _kept_evaluation(tmp_path, "libero_goal", "evaluate-s1", "sft", "oracle", {(0, 0): True})
+    _kept_evaluation(tmp_path, "libero_goal", "evaluate-f1", "post", "fixed", {(0, 0): True})
+    spec = tmp_path / "suites.yaml"
+    spec.write_text("rows:\n- suite: libero_goal\n  sft: {policy: S, oracle: [evaluate-s1]}\n"
+                    "  post_trained: {policy: P, oracle: [evaluate-gone]}\n")
+    with pytest.raises(ConfigError, match="evaluate-gone has no episodes.json"):
+        kept_rows(spec)
+    spec.write_text("rows:\n- suite: libero_goal\n  sft: {policy: S, oracle: [evaluate-s1]}\n"
+                    "  post_trained: {policy: P, oracle: [evaluate-f1]}\n")
+    with pytest.raises(ConfigError, match="post_trained oracle: the evaluations ran libero_goal with fixed"):
+        kept_rows(spec)
+    with pytest.raises(ConfigError, match="no such file"):
+        kept_rows(tmp_path / "missing.yaml")
+
+
+def test_the_repositorys_kept_table_is_what_its_spec_generates(tmp_path):
+    """results/suites.md is generated: regenerating it from results/suites.yaml changes nothing."""
+    from pathlib import Path
+
+    from stages.suites import write_kept
+
+    repo = Path(__file__).resolve().parents[2]
+    write_kept(repo / "results" / "suites.yaml", tmp_path)
+    assert (tmp_path / "suites.md").read_text() == (repo / "results" / "suites.md").read_text()
