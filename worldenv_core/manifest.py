@@ -20,6 +20,7 @@ import platform
 import subprocess
 import time
 import uuid
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from importlib import metadata
 from pathlib import Path
@@ -287,7 +288,7 @@ class StageRun:
             out.append(first.id if first and mine else rid)
         return sorted(out)
 
-    def finished_before(self) -> StageRecord | None:
+    def finished_before(self, same: Callable[[StageRecord], bool] | None = None) -> StageRecord | None:
         """The finished run this one would repeat, if any: the same stage and settings (config
         hash), the same input files by content (call it once every input is `use`d), and every
         output still on disk as recorded. The stage then returns that record's metrics, and this
@@ -295,11 +296,12 @@ class StageRun:
         its stage for `latest`, as a run would be), so re-running `make pipeline` after a kill skips
         finished stages instead of reloading their data and measuring them again. To run one
         again, change a setting or remove one of its outputs (its report, say): it then resumes
-        from its work dir."""
+        from its work dir. `same(record)`: a further test, for what decides the run but is not in
+        its config (a data folder named by a hash of the code that writes it)."""
         used = {a.sha256 for a in self.record.input_files}
         for rec in reversed(self.manifest.records()):
             if ((rec.stage, rec.config_hash) != (self.record.stage, self.record.config_hash) or not rec.outputs
-                    or {a.sha256 for a in rec.input_files} != used):
+                    or {a.sha256 for a in rec.input_files} != used or (same is not None and not same(rec))):
                 continue
             try:
                 self.manifest.resolve(rec)  # every output still as recorded

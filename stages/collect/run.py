@@ -68,12 +68,20 @@ def run(cfg: DictConfig) -> dict:
     tags = {"task": task.name, "scale": cfg.scale.name, "source": cfg.source}
     summary: dict = {}
     with StageRun(manifest, "collect", tags, resolved(cfg)) as stage:
+        # the policy is an input (used once, here), so a finished collection is known by its weights too
+        policy_path = resolve_policy(cfg, stage) if cfg.source == "policy" and cfg.episodes_per_task > 0 else None
+        # a re-run of `make pipeline`: nothing to redo, if the episodes would go to the same folder (its name
+        # also holds the expert's code hash, which the config does not)
+        folder = str(episode_dir(cfg)) if cfg.source in ("expert", "policy") and cfg.episodes_per_task > 0 else None
+        if folder and (done := stage.finished_before(
+                lambda rec: rec.metrics.get("collection", {}).get("episode_dir") == folder)) is not None:
+            return {k: v for k, v in done.metrics.items() if k != "real_episodes"}
         if cfg.expert_eval.init_states > 0:
             summary["expert_eval"] = expert_eval(cfg, contract, task_ids, run_dir, stage)
         if cfg.source == "lerobot":
             summary["collection"] = import_dataset(cfg, stage)
         elif cfg.episodes_per_task > 0:
-            summary["collection"] = _collect(cfg, contract, task_ids, stage)
+            summary["collection"] = _collect(cfg, contract, task_ids, stage, policy_path)
         if stage.record.files("episodes"):
             preview(cfg, stage, run_dir)
             if cfg.lerobot_export:
@@ -84,14 +92,15 @@ def run(cfg: DictConfig) -> dict:
     return summary
 
 
-def _collect(cfg: DictConfig, contract: TaskContract, task_ids: list[int], stage: StageRun) -> dict:
+def _collect(cfg: DictConfig, contract: TaskContract, task_ids: list[int], stage: StageRun,
+             policy_path: str | None) -> dict:
     task = cfg.task
     out_dir = episode_dir(cfg)
     common = dict(contract=contract, seed=cfg.seed, init_mode=cfg.init_states,
                   post_success_steps=cfg.post_success_steps)
     path = lambda t, k: str(out_dir / f"task{t:02d}" / f"{cfg.source}_{k:04d}.mcap")  # noqa: E731
     if cfg.source == "policy":
-        policy_path, scales = resolve_policy(cfg, stage), noise_scales(cfg)
+        scales = noise_scales(cfg)
         fn, jobs = collect_policy_episode, [
             PolicyEpisodeJob(policy_path=policy_path, task_id=t, index=k, path=path(t, k),
                              noise_scale=float(scales[k % len(scales)]), stop_on_success=cfg.stop_on_success, **common)

@@ -12,7 +12,9 @@ how it was trained.
         --worldsim <world model> --reflector <reflector> --work w --minutes 8 [rl.n_rollouts=8 ...]  # there
 
 `--minutes` sizes the run from a few timed iterations on copies of the policy (recorded in the
-work dir, so a re-run resumes to the same total).
+work dir, so a re-run resumes to the same total), and is also a deadline: the imagined evaluations
+and longer later rollouts are not in the timing, so a run that would overrun saves its policy at the
+first iteration past the deadline and stops (a re-run goes on to the total).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import copy
 import hashlib
 import json
 import logging
+import time
 from pathlib import Path
 
 import torch
@@ -50,9 +53,12 @@ def main(argv: list[str] | None = None) -> Path:
     p.add_argument("--work", required=True, help="work dir: resumable checkpoints, curves, the result")
     how_long = p.add_mutually_exclusive_group(required=True)
     how_long.add_argument("--iterations", type=int)
-    how_long.add_argument("--minutes", type=float, help="train for about this long (timed on this machine)")
+    how_long.add_argument("--minutes", type=float, help="train for about this long: planned from timed steps, and saved and stopped at the "
+                          "deadline if the plan runs over (a re-run goes on)")
     p.add_argument("overrides", nargs="*", help="post_train_loop settings, key=value (rl.*, eta, seed, eval.*)")
     args = p.parse_intermixed_args(argv)
+    # --minutes is this sitting's wall clock, the plan's timing included: past it, the run saves and stops
+    deadline = time.monotonic() + 60 * args.minutes if args.minutes else None
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     contexts, keys, encoder, camera = read_context_pack(args.pack)
     task = read_config(args.policy)["meta"]["task"]
@@ -104,10 +110,12 @@ def main(argv: list[str] | None = None) -> Path:
 
     log.info("LOOP from %s: %d contexts (%s ...), %d iterations of %d contexts x %d rollouts, eta %.2f, on %s",
              args.pack, len(contexts), keys[0], iterations, rl.contexts_per_iteration, rl.n_rollouts, eta, device)
-    trainer.fit([phase(policy, optimizer, iterations)], evaluate=evaluate, evaluate_every=cfg.eval.every)
-    final = trainer.save_final(work / "policy", iteration=iterations)
+    trainer.fit([phase(policy, optimizer, iterations)], evaluate=evaluate, evaluate_every=cfg.eval.every,
+                deadline=deadline)
+    final = trainer.save_final(work / "policy", iteration=trainer.step)
     trainer.close_off("training.png", f"post_train_loop from a context pack {contract.name}")
-    log.info("saved %s (%d iterations, %.0f s this sitting)", final, iterations, trainer.wall_s)
+    log.info("saved %s (%d of %d iterations%s, %.0f s this sitting)", final, trainer.step, iterations,
+             "; the deadline came first, a re-run goes on" if trainer.stopped_early else "", trainer.wall_s)
     return final
 
 

@@ -9,7 +9,8 @@ and scale), overridden as `key=value`.
         --snapshots 3 rollout.chunks=8 rollout.batch_size=64                                   # there
 
 `--minutes` sizes the run from a timing of a few steps on a copy of the model (recorded in the work
-dir, so a re-run resumes to the same total); `--snapshots K` also saves the EMA model at K-1 equal
+dir, so a re-run resumes to the same total) and stops it, saved, at the first step past that many
+minutes if the plan runs over; `--snapshots K` also saves the EMA model at K-1 equal
 fractions of the run (`snapshot_<step>/`), a compute curve from one run.
 
 The model-size and data curves of issue 22: `--width W` trains a *fresh* flow network of width W on
@@ -23,6 +24,7 @@ from __future__ import annotations
 import argparse
 import copy
 import logging
+import time
 from pathlib import Path
 
 import torch
@@ -57,12 +59,14 @@ def main(argv: list[str] | None = None) -> Path:
     p.add_argument("--work", required=True, help="work dir: resumable checkpoints, curves, the result")
     how_long = p.add_mutually_exclusive_group(required=True)
     how_long.add_argument("--steps", type=int)
-    how_long.add_argument("--minutes", type=float, help="train for about this long (timed on this machine)")
+    how_long.add_argument("--minutes", type=float, help="train for about this long: planned from timed steps, and saved and stopped at the "
+                          "deadline if the plan runs over (a re-run goes on)")
     p.add_argument("--snapshots", type=int, default=1, help="K: save the EMA model at K equal fractions of the run")
     p.add_argument("--width", type=int, help="a fresh flow network of this width on the model's autoencoder")
     p.add_argument("--every", type=int, default=1, help="N: train on every N-th episode of the pack")
     p.add_argument("overrides", nargs="*", help="train_worldsim settings, key=value")
     args = p.parse_intermixed_args(argv)
+    deadline = time.monotonic() + 60 * args.minutes if args.minutes else None  # this sitting's wall clock
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     cfg = settings(args.overrides)
     work = Path(args.work)
@@ -117,10 +121,12 @@ def main(argv: list[str] | None = None) -> Path:
     log.info("open-loop training from %s: %d episodes, %d steps (%s), chunks %d, batch %d, on %s", args.pack,
              len(episodes), steps, f"{args.minutes} min planned" if args.minutes else "given", cfg.rollout.chunks,
              cfg.rollout.batch_size, device)
-    trainer.fit([rollout_phase(model, ema, optimizer, chunks_of, cameras, cfg, device)], after_step=snapshot)
-    final = trainer.save_final(work / "worldsim", model=ema)
+    trainer.fit([rollout_phase(model, ema, optimizer, chunks_of, cameras, cfg, device)], after_step=snapshot,
+                deadline=deadline)
+    final = trainer.save_final(work / "worldsim", model=ema, rollout_steps=prior + trainer.step)
     trainer.close_off("losses.png", f"train_worldsim from a latent pack {base_meta['task']}")
-    log.info("saved %s (%d steps, %.0f s this sitting)", final, steps, trainer.wall_s)
+    log.info("saved %s (%d of %d steps%s, %.0f s this sitting)", final, trainer.step, steps,
+             "; the deadline came first, a re-run goes on" if trainer.stopped_early else "", trainer.wall_s)
     return final
 
 

@@ -147,13 +147,18 @@ class Trainer:
         return distributed.mean_over_ranks(values) if self.parallel else values
 
     def fit(self, phases: list[Phase], after_step: Callable[[int], None] | None = None,
-            evaluate: Callable[[int, Path | None], dict] | None = None, evaluate_every: int = 0) -> list[dict]:
+            evaluate: Callable[[int, Path | None], dict] | None = None, evaluate_every: int = 0,
+            deadline: float | None = None) -> list[dict]:
         """Run `phases` one after another from the restored step to the end. `after_step(done)` runs
         after every step (before its checkpoint). `evaluate(done, checkpoint)` measures the model
         before the first step (checkpoint None: the starting model), every `evaluate_every` steps
         and at the end, on the checkpoint just saved; its values join that step's history entry
-        and go to the tracker's "eval" group. -> the history."""
+        and go to the tracker's "eval" group. `deadline` (a `time.monotonic()` instant): the first
+        step that ends past it is the last of this sitting, checkpointed and evaluated as the end is
+        (`self.stopped_early`), so a run on a leased machine ends with its model saved rather than
+        killed; a re-run resumes to the planned total. -> the history."""
         total = sum(p.steps for p in phases)
+        self.stopped_early = False
         if self.overall is not None:
             self.overall.update(self.step)  # what earlier sittings (or a finished fold) did
         bar = tqdm(range(self.step, total), initial=self.step, total=total, desc=self.desc, dynamic_ncols=True,
@@ -180,12 +185,20 @@ class Trainer:
                 self.overall.update(1)
             if after_step is not None:
                 after_step(done)
-            evaluating = evaluate is not None and (done == total or (evaluate_every and done % evaluate_every == 0))
-            if evaluating or done % self.checkpoint_every == 0 or done == total:
+            late = deadline is not None and done < total and time.monotonic() >= deadline
+            if deadline is not None and self.parallel:  # every rank stops at the same step: rank 0's clock decides
+                late = distributed.gather(late)[0]
+            last = done == total or late
+            evaluating = evaluate is not None and (last or (evaluate_every and done % evaluate_every == 0))
+            if evaluating or done % self.checkpoint_every == 0 or last:
                 path = self.save(done)
             if evaluating:
                 self._record_eval(done, evaluate(done, path))
                 self.save(done)  # again, with the evaluation in its history
+            if late:
+                self.stopped_early = True
+                log.info("%s: past the deadline at step %d of %d; checkpointed, a re-run goes on", self.desc, done, total)
+                break
         bar.close()
         self.wall_s += time.perf_counter() - t0
         if self.parallel:

@@ -100,9 +100,10 @@ def test_killed_collection_resumes_and_reproduces_the_episodes(tmp_path):
     assert record.files("lerobot"), "the LeRobot export is recorded in the manifest"
     info = out_dir / "lerobot" / "meta" / "info.json"
     built = info.stat().st_mtime_ns
-    run(cfg)  # nothing new to collect: the export, made from these very episodes, is not rebuilt
-    assert info.stat().st_mtime_ns == built
-    assert Manifest(tmp_path / "exp").latest("collect", task="tiny", source="expert").files("lerobot")
+    again = run(cfg)  # finished with these settings: nothing is collected, read or exported again
+    assert info.stat().st_mtime_ns == built and again["collection"] == summary["collection"]
+    repeat = Manifest(tmp_path / "exp").latest("collect", task="tiny", source="expert")
+    assert repeat.repeats == record.id and repeat.files("lerobot")
 
     # Same job, fresh file: bit-identical to what the killed run wrote.
     ref = tmp_path / "ref.mcap"

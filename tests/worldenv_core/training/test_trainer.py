@@ -10,7 +10,7 @@ class Boom(RuntimeError):
     pass
 
 
-def _run(work, steps=(6, 4), crash_at=None, evaluate=None, evaluate_every=0):
+def _run(work, steps=(6, 4), crash_at=None, evaluate=None, evaluate_every=0, deadline=None):
     """A two-phase fit of a linear model on per-step seeded batches, with dropout (global RNG)."""
     torch.manual_seed(0)
     model = torch.nn.Sequential(torch.nn.Linear(4, 8), torch.nn.Dropout(0.3), torch.nn.Linear(8, 1))
@@ -31,7 +31,7 @@ def _run(work, steps=(6, 4), crash_at=None, evaluate=None, evaluate_every=0):
         return step
 
     history = trainer.fit([Phase("a", steps[0], draw, update("a")), Phase("b", steps[1], draw, update("b"))],
-                          evaluate=evaluate, evaluate_every=evaluate_every)
+                          evaluate=evaluate, evaluate_every=evaluate_every, deadline=deadline)
     return trainer, model, history
 
 
@@ -68,3 +68,24 @@ def test_evaluations_before_the_first_step_every_n_and_at_the_end(tmp_path):
     scores = {h["step"]: h["score"] for h in history if "score" in h}
     assert scores == {0: 0.0, 2: 2.0, 4: 4.0, 5: 5.0}
     assert next(h for h in history if h["step"] == 2)["loss_a"] > 0  # the evaluation joins the step's entry
+
+
+def test_a_run_past_its_deadline_saves_evaluates_and_stops_and_a_rerun_goes_on(tmp_path):
+    """`--minutes` on a leased machine: a plan that overruns ends saved, not killed."""
+    import time
+
+    _, ref_model, ref_history = _run(tmp_path / "ref")
+    seen = []
+
+    def evaluate(step, checkpoint):
+        seen.append((step, None if checkpoint is None else checkpoint.name))
+        return {"score": float(step)}
+
+    trainer, _, _ = _run(tmp_path / "cut", steps=(6, 4), evaluate=evaluate, deadline=time.monotonic() - 1)
+    assert trainer.stopped_early and trainer.step == 1
+    assert seen == [(0, None), (1, "0000001")]  # the stopping step is measured on its checkpoint
+    trainer, model, history = _run(tmp_path / "cut", deadline=time.monotonic() + 3600)
+    assert not trainer.stopped_early and trainer.step == 10
+    for a, b in zip(ref_model.state_dict().values(), model.state_dict().values()):
+        assert torch.equal(a, b)
+    assert [h.get("loss_b") for h in history if h["step"] > 6] == [h.get("loss_b") for h in ref_history if h["step"] > 6]
