@@ -25,7 +25,7 @@ import math
 import sys
 from pathlib import Path
 
-import yaml
+from omegaconf import OmegaConf
 
 from stages.evaluate.evaluation import own_suite_evaluations
 from stages.evaluate.paired import compare, pooled_episodes
@@ -171,7 +171,7 @@ def read_kept_spec(path: str | Path) -> dict:
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"{path}: no such file (the kept-evaluations spec, e.g. results/suites.yaml)")
-    spec = yaml.safe_load(path.read_text()) or {}
+    spec = OmegaConf.to_container(OmegaConf.load(path)) or {}
     root = path.parent
     for i, row in enumerate(spec.get("rows") or []):
         where = f"{path} rows[{i}]"
