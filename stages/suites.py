@@ -136,16 +136,19 @@ def limits_table(rows: list[dict]) -> list[str]:
                            "limits that hold"], out)
 
 
+def _termination_cells(row: dict, missing: str, p_format: str) -> list:
+    """A row's oracle cells (SFT -> post-trained, gain, discordant pairs, p, episodes), then fixed and reflector."""
+    o = row.get("oracle")
+    cells = [f"{_pct(o['sft'])} -> {_pct(o['post_trained'])}", f"{100 * (o['post_trained'] - o['sft']):+.1f}",
+             f"{o['only_a']} / {o['only_b']}", format(o["p_value"], p_format), o["episodes"]] if o else [missing, "", "", "", ""]
+    for term in ("fixed", "reflector"):
+        t = row.get(term)
+        cells.append(f"{_pct(t['sft'])} -> {_pct(t['post_trained'])} (p {format(t['p_value'], p_format)})" if t else "")
+    return cells
+
+
 def table(rows: list[dict]) -> list[str]:
-    out = []
-    for r in rows:
-        o = r.get("oracle")
-        cells = [f"{_pct(o['sft'])} -> {_pct(o['post_trained'])}", f"{100 * (o['post_trained'] - o['sft']):+.1f}",
-                 f"{o['only_a']} / {o['only_b']}", f"{o['p_value']:.3g}", o["episodes"]] if o else ["not run", "", "", "", ""]
-        for term in ("fixed", "reflector"):
-            t = r.get(term)
-            cells.append(f"{_pct(t['sft'])} -> {_pct(t['post_trained'])} (p {t['p_value']:.3g})" if t else "")
-        out.append([r["task"], *cells])
+    out = [[r["task"], *_termination_cells(r, "not run", ".3g")] for r in rows]
     return markdown_table(["suite", "oracle: SFT -> post-trained", "gain (points)", "solved only by SFT / post-trained",
                            "McNemar p", "paired episodes", "fixed horizon", "reflector termination"], out)
 
@@ -231,15 +234,8 @@ def kept_rows(spec_path: str | Path) -> tuple[list[dict], list[dict]]:
 
 def kept_table(rows: list[dict], verdicts: list[dict]) -> list[str]:
     """results/suites.md: the rows (Table 1 per suite, Table 3's terminations where kept) and the verdicts."""
-    lines = []
-    for r in rows:
-        o = r.get("oracle")
-        cells = [f"{_pct(o['sft'])} -> {_pct(o['post_trained'])}", f"{100 * (o['post_trained'] - o['sft']):+.1f}",
-                 f"{o['only_a']} / {o['only_b']}", f"{o['p_value']:.2g}", o["episodes"]] if o else ["", "", "", "", ""]
-        for term in ("fixed", "reflector"):
-            t = r.get(term)
-            cells.append(f"{_pct(t['sft'])} -> {_pct(t['post_trained'])} (p {t['p_value']:.2g})" if t else "")
-        lines.append([r["task"], r["sft_policy"], r["post_trained_policy"], *cells, r["note"]])
+    lines = [[r["task"], r["sft_policy"], r["post_trained_policy"], *_termination_cells(r, "", ".2g"), r["note"]]
+             for r in rows]
     out = markdown_table(["suite", "SFT policy", "post-trained policy", "oracle: SFT -> post-trained", "gain (points)",
                           "solved only by SFT / post-trained", "McNemar p", "paired episodes", "fixed horizon",
                           "reflector termination", "note"], lines)
