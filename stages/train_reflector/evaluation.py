@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from stages.train_reflector.horizon import lead_table, plot_by_lead, recognition_by_lead
 from worldenv_core.contract import TaskContract
 from worldenv_core.data.selection import episode_key
 from worldenv_core.manifest import ArtefactError
@@ -55,18 +56,25 @@ def imagine_held_out(cfg, contract: TaskContract, stage, held: list[Path], held_
     if unseen is None:
         log.warning("world simulator %s does not list its held-out episodes: some imagined episodes may be ones it "
                     "trained on", ckpt)
-    return eps, imagine(cfg, contract, ckpt, eps)
+    return eps, ckpt
+
+
+def simulators(cfg, contract: TaskContract, ckpt: str, eps: list) -> dict:
+    """World simulator `ckpt` set up for each task of `eps`: task id -> ImaginedSimulator."""
+    from worldenv_core.imagination.simulator import ImaginedSimulator
+
+    return {tid: ImaginedSimulator.from_checkpoint(ckpt, tid, cfg.imagined.sampling_steps, contract=contract)
+            for tid in sorted({ep.meta.task_id for ep in eps})}
 
 
 def imagine(cfg, contract: TaskContract, ckpt: str, eps: list) -> list[torch.Tensor]:
     """Open-loop replays of `eps` from their first frame and recorded actions by world simulator
     `ckpt`, batched per task: per episode (T+1, 3, H, W) uint8."""
-    from worldenv_core.imagination.simulator import ImaginedSimulator, replay_from_start
+    from worldenv_core.imagination.simulator import replay_from_start
 
     out = {}
     g = torch.Generator().manual_seed(cfg.seed)
-    for tid in sorted({ep.meta.task_id for ep in eps}):
-        sim = ImaginedSimulator.from_checkpoint(ckpt, tid, cfg.imagined.sampling_steps, contract=contract)
+    for tid, sim in simulators(cfg, contract, ckpt, eps).items():
         group = [ep for ep in eps if ep.meta.task_id == tid]
         for ep, frames in zip(group, replay_from_start(sim, group, camera=cfg.camera, generator=g)):
             out[id(ep)] = frames
@@ -104,12 +112,20 @@ def evaluate_held_out(cfg, contract: TaskContract, stage, model, encoder, held: 
     """The reflector on the held-out real videos and (when the experiment has a world simulator) on
     its replays of them; writes reflector_eval.{json,md} and reflector_curves.png into `work`."""
     videos = {"real": [ep.video(cfg.camera) for ep in held_eps]}
-    imagined_eps = held_eps
+    imagined_eps, by_lead = held_eps, None
     if cfg.imagined.enabled:
         imagined = imagine_held_out(cfg, contract, stage, held, held_eps)
         if imagined is not None:
-            imagined_eps, videos["imagined"] = imagined
+            imagined_eps, ckpt = imagined
+            videos["imagined"] = imagine(cfg, contract, ckpt, imagined_eps)
+            if cfg.imagined.leads:  # and from a few steps before each outcome: where the verdict is lost
+                by_lead = recognition_by_lead(model, encoder, simulators(cfg, contract, ckpt, imagined_eps),
+                                              imagined_eps, cfg.eta, cfg.frame_stride, cfg.camera, cfg.imagined.leads,
+                                              generator=torch.Generator().manual_seed(cfg.seed))
+                plot_by_lead(by_lead, work / "reflector_by_lead.png")
     report = {"eta": float(cfg.eta), "held_out_episodes": len(held_eps)}
+    if by_lead is not None:
+        report["imagined_by_lead"] = by_lead
     curves = {}
     for kind, vids in videos.items():
         eps = held_eps if kind == "real" else imagined_eps
@@ -133,6 +149,9 @@ def headline(report: dict) -> dict:
             out.update({f"{kind}_step_f1": r["per_step"]["f1"], f"{kind}_step_auroc": r["per_step"]["auroc"],
                         f"{kind}_step_accuracy": r["per_step"]["accuracy"],
                         f"{kind}_termination_f1": r["termination"]["all"]["f1"]})
+    for lead, r in report.get("imagined_by_lead", {}).get("leads", {}).items():  # the share recognised per lead
+        if r["successes"]:
+            out[f"imagined_recognised_from_{lead}_before"] = round(r["recognised"] / r["successes"], 3)
     return out
 
 
@@ -162,6 +181,10 @@ def write_evaluation(report: dict, frame_stride: int, work: Path) -> None:
                                                                  v["eta_sweep"].items()) + f"): {v['chosen_eta']}; "
                f"held-out real termination at it: precision {t['precision']:.3f}, recall {t['recall']:.3f}, "
                f"**F1 {t['f1']:.3f}** ({t['false_stops']} false stops, {t['missed_successes']} missed successes)"]
+    if "imagined_by_lead" in report:
+        md += ["", f"Imagined from a few steps before each held-out outcome (real frames up to there, then the "
+               f"recorded actions open loop; scored up to {report['imagined_by_lead']['after']} steps past it):", "",
+               *markdown_table(*lead_table(report["imagined_by_lead"]))]
     (work / "reflector_eval.md").write_text("\n".join(md) + "\n")
     print("\n".join(md))
 

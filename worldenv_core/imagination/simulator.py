@@ -166,10 +166,7 @@ def open_loop_fidelity(sim: ImaginedSimulator, episodes, horizons=(8, 16, 32, 64
         if last_start < 1:
             continue
         starts = torch.linspace(1, last_start, starts_per_episode).round().long().unique().tolist()
-        # all starts of an episode run as one batch
-        acts = torch.stack([actions[s:s + n_chunks * k] for s in starts]).view(len(starts), n_chunks, k, -1)
-        sim.reset(_histories(imgs, starts, sim.model.history), proprio[starts], proprio[[s - 1 for s in starts]])
-        frames = torch.cat([sim.step(acts[:, c], generator=generator).frames for c in range(n_chunks)], dim=1)
+        frames = replay_from_steps(sim, imgs, proprio, actions, starts, n_chunks, generator)
         for h in horizons:
             real = torch.stack([imgs[s + h] for s in starts]).float() / 255
             fake = frames[:, h - 1].float() / 255
@@ -223,6 +220,24 @@ def replay_from_start(sim: ImaginedSimulator, episodes, camera: str = "agentview
         return [frames[i, : ep.length + 1] for i, ep in enumerate(episodes)]
     proprio = torch.cat([start, *(o.proprio.cpu() for o in outs)], dim=1)
     return [(frames[i, : ep.length + 1], proprio[i, : ep.length + 1]) for i, ep in enumerate(episodes)]
+
+
+@torch.no_grad()
+def replay_from_steps(sim: ImaginedSimulator, imgs: torch.Tensor, proprio: torch.Tensor, actions: torch.Tensor,
+                      starts: list[int], n_chunks: int, generator: torch.Generator | None = None) -> torch.Tensor:
+    """One episode imagined from several of its steps at once (one batch): from each start s >= 1 the
+    real frames up to s (the model's history), the state at s and at s - 1, then `n_chunks` chunks of
+    the recorded actions from s, open loop (past the episode's end its last command is held).
+    imgs (T+1, 3, H, W) uint8, proprio (T+1, 7), actions (T, 7) -> (len(starts), n_chunks * K, 3, H, W) uint8."""
+    if min(starts) < 1:
+        raise ValueError(f"a start needs the state before it: starts must be >= 1, got {min(starts)}")
+    k = sim.model.chunk
+    acts = actions.float()
+    acts = torch.cat([acts, acts[-1:].expand(n_chunks * k, -1)])
+    batch = torch.stack([acts[s:s + n_chunks * k] for s in starts]).view(len(starts), n_chunks, k, -1)
+    proprio = proprio.double()
+    sim.reset(_histories(imgs, starts, sim.model.history), proprio[starts], proprio[[s - 1 for s in starts]])
+    return torch.cat([sim.step(batch[:, c], generator=generator).frames for c in range(n_chunks)], dim=1)
 
 
 def _histories(imgs: torch.Tensor, starts: list[int], history: int) -> torch.Tensor:

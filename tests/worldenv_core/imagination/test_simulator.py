@@ -23,3 +23,33 @@ def test_the_sampler_noise_override_chooses_mean_or_sample():
     assert torch.equal(_chunk(None, 1), _chunk(1.0, 1))  # None: the model's own temperature (here 1)
     with pytest.raises(ValueError, match="noise_scale"):
         _chunk(1.5, 1)
+
+
+def test_replay_from_steps_imagines_each_start_open_loop_and_needs_the_state_before_it():
+    from worldenv_core.imagination.simulator import replay_from_steps
+
+    torch.manual_seed(0)
+    sim = ImaginedSimulator(WorldSimulator(**TINY), NextStateModel(), camera(2.0))
+    imgs = torch.randint(0, 255, (11, 3, 32, 32), dtype=torch.uint8)
+    proprio, actions = torch.zeros(11, 7), torch.zeros(10, 7)
+    frames = replay_from_steps(sim, imgs, proprio, actions, [1, 9], n_chunks=3)  # past the end: the last action held
+    assert frames.shape == (2, 3 * TINY["chunk"], 3, 32, 32) and frames.dtype == torch.uint8
+    with pytest.raises(ValueError, match="starts must be >= 1, got 0"):
+        replay_from_steps(sim, imgs, proprio, actions, [0, 4], n_chunks=1)
+
+
+def test_open_loop_fidelity_scores_each_horizon_against_copy_last():
+    import numpy as np
+
+    from tests.conftest import synthetic_episode
+    from worldenv_core.imagination.simulator import open_loop_fidelity
+
+    torch.manual_seed(0)
+    sim = ImaginedSimulator(WorldSimulator(**TINY), NextStateModel(), camera(2.0))
+    rng = np.random.default_rng(0)
+    eps = [synthetic_episode(rng, size=32, length=30, succeed_at=12), synthetic_episode(rng, size=32, length=6)]
+    out = open_loop_fidelity(sim, eps, horizons=(4, 8), starts_per_episode=2)
+    assert out["horizons"][8]["n"] == 2  # two starts of the first episode; the second is too short for 8 steps
+    real, imagined = out["videos"][0]
+    assert real.shape == imagined.shape and imagined.shape[0] == 8
+    assert all(0 < out["horizons"][h]["model_psnr"] < 100 for h in (4, 8))
