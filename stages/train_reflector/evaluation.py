@@ -15,6 +15,7 @@ import torch
 
 from stages.train_reflector.horizon import lead_table, plot_by_lead, recognition_by_lead
 from worldenv_core.contract import TaskContract
+from worldenv_core.imagination.simulator import rendered_copy
 from worldenv_core.data.selection import episode_key
 from worldenv_core.manifest import ArtefactError
 from worldenv_core.metrics import binary_metrics
@@ -27,6 +28,10 @@ from worldenv_core.viz import figure, save_figure
 
 log = logging.getLogger("worldenv.train_reflector")
 ETA_SWEEP = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
+
+
+# the held-out videos scored: as recorded, as the world model draws those frames, as it imagines them
+KINDS = ("real", "rendered", "imagined")
 
 
 def termination_at(episodes, curves, eta: float) -> dict:
@@ -118,9 +123,12 @@ def evaluate_held_out(cfg, contract: TaskContract, stage, model, encoder, held: 
         if imagined is not None:
             imagined_eps, ckpt = imagined
             videos["imagined"] = imagine(cfg, contract, ckpt, imagined_eps)
+            sims = simulators(cfg, contract, ckpt, imagined_eps)
+            # the real frames as the world model draws them: what its rendering alone costs the verdict
+            videos["rendered"] = [rendered_copy(sims[ep.meta.task_id], ep.video(cfg.camera)) for ep in imagined_eps]
             if cfg.imagined.leads:  # and from a few steps before each outcome: where the verdict is lost
-                by_lead = recognition_by_lead(model, encoder, simulators(cfg, contract, ckpt, imagined_eps),
-                                              imagined_eps, cfg.eta, cfg.frame_stride, cfg.camera, cfg.imagined.leads,
+                by_lead = recognition_by_lead(model, encoder, sims, imagined_eps, cfg.eta, cfg.frame_stride,
+                                              cfg.camera, cfg.imagined.leads,
                                               generator=torch.Generator().manual_seed(cfg.seed))
                 plot_by_lead(by_lead, work / "reflector_by_lead.png")
     report = {"eta": float(cfg.eta), "held_out_episodes": len(held_eps)}
@@ -143,7 +151,7 @@ def headline(report: dict) -> dict:
     if "cross_validation" in report:
         v = report["cross_validation"]
         out.update(chosen_eta=v["chosen_eta"], real_termination_f1_at_chosen_eta=v["real_termination_at_chosen_eta"]["f1"])
-    for kind in ("real", "imagined"):
+    for kind in KINDS:
         if kind in report:
             r = report[kind]
             out.update({f"{kind}_step_f1": r["per_step"]["f1"], f"{kind}_step_auroc": r["per_step"]["auroc"],
@@ -157,7 +165,7 @@ def headline(report: dict) -> dict:
 
 def write_evaluation(report: dict, frame_stride: int, work: Path) -> None:
     (work / "reflector_eval.json").write_text(json.dumps(report, indent=2))
-    kinds = [k for k in ("real", "imagined") if k in report]
+    kinds = [k for k in KINDS if k in report]
     rows = []
     for kind in kinds:
         for src, t in report[kind]["termination"].items():
@@ -223,7 +231,7 @@ def section(ctx: ReportContext, limit: int = 4) -> list[str]:
         ckpt = r.files("checkpoint")
         run = f"`{r.id}` ({short_run(str(Path(ckpt[0].path).parent))})" if ckpt else f"`{r.id}`"  # as evaluations name it
         training = r.metrics.get("training", "")
-        for kind in ("real", "imagined"):
+        for kind in KINDS:
             if kind in acc:
                 p, t = acc[kind]["per_step"], acc[kind]["termination"]["all"]
                 rows.append([run, r.tags.get("data"), r.tags.get("reward", "trained head"), training, acc["eta"],

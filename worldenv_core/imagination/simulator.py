@@ -223,6 +223,19 @@ def replay_from_start(sim: ImaginedSimulator, episodes, camera: str = "agentview
 
 
 @torch.no_grad()
+def rendered_copy(sim: ImaginedSimulator, imgs: torch.Tensor, block: int = 64) -> torch.Tensor:
+    """An episode's real frames as the world model draws them, with no dynamics: each encoded and
+    decoded (static detail laid back from the first frame, as in imagination). (T+1, 3, H, W) uint8 in
+    and out; the first frame, the context, stays as it is."""
+    sim.reset(imgs[None, :1], torch.zeros(1, 7, dtype=torch.float64))
+    out = [imgs[:1]]
+    for s in range(1, len(imgs), block):
+        out.append((sim.render(sim.model.encode(imgs[None, s:s + block].to(sim.device)))[0] * 255).round()
+                   .to(torch.uint8).cpu())
+    return torch.cat(out)
+
+
+@torch.no_grad()
 def replay_from_steps(sim: ImaginedSimulator, imgs: torch.Tensor, proprio: torch.Tensor, actions: torch.Tensor,
                       starts: list[int], n_chunks: int, generator: torch.Generator | None = None) -> torch.Tensor:
     """One episode imagined from several of its steps at once (one batch): from each start s >= 1 the

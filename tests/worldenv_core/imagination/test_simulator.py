@@ -53,3 +53,15 @@ def test_open_loop_fidelity_scores_each_horizon_against_copy_last():
     real, imagined = out["videos"][0]
     assert real.shape == imagined.shape and imagined.shape[0] == 8
     assert all(0 < out["horizons"][h]["model_psnr"] < 100 for h in (4, 8))
+
+
+def test_rendered_copy_draws_every_frame_but_the_context_through_the_world_model():
+    from worldenv_core.imagination.simulator import rendered_copy
+
+    torch.manual_seed(0)
+    sim = ImaginedSimulator(WorldSimulator(**TINY), NextStateModel(), camera(2.0))
+    imgs = torch.randint(0, 255, (9, 3, 32, 32), dtype=torch.uint8)
+    out = rendered_copy(sim, imgs, block=4)  # blocks of 4: the last one short
+    assert out.shape == imgs.shape and out.dtype == torch.uint8
+    assert torch.equal(out[0], imgs[0]) and not torch.equal(out[1:], imgs[1:])
+    assert torch.equal(out, rendered_copy(sim, imgs, block=64))  # frame by frame: blocks do not matter
