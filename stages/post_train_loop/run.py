@@ -46,6 +46,7 @@ log = logging.getLogger("worldenv.post_train_loop")
 
 # imagined: the method (world simulator + reflector); real: the reference, the real simulator and its oracle
 ENVS = ("imagined", "real")
+VERDICTS = ("own", "permuted")  # rl.verdicts: the environment's, or the control's shuffle of them
 
 
 def validate(cfg: DictConfig) -> None:
@@ -80,6 +81,8 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"rl.target_kl must be > 0 or null (no limit), got {cfg.rl.target_kl}")
     if not (cfg.rl.lr_backbone > 0 and cfg.rl.lr_heads > 0):
         raise ConfigError("rl.lr_backbone and rl.lr_heads must be > 0")
+    if cfg.rl.verdicts not in VERDICTS:
+        raise ConfigError(f"rl.verdicts must be one of {list(VERDICTS)}, got {cfg.rl.verdicts!r}")
     if cfg.env not in ENVS:
         raise ConfigError(f"env must be one of {list(ENVS)}, got {cfg.env!r}")
 
@@ -144,8 +147,10 @@ def run(cfg: DictConfig) -> dict:
         # The work dir (what resume finds) is named by what defines the training and by its inputs,
         # not by how it is evaluated or shown: changing eval.* or progress continues the same run.
         key = {k: v for k, v in config.items() if k not in ("eval", "progress")}
-        if not rl.mid_episode_frames:  # added later: first frames only keeps the work dirs of earlier runs
-            key["rl"] = {k: v for k, v in key["rl"].items() if k != "mid_episode_frames"}
+        # added later: at their defaults (first frames only, the environment's own verdicts) they keep the
+        # work dirs of earlier runs
+        key["rl"] = {k: v for k, v in key["rl"].items()
+                     if not (k == "mid_episode_frames" and not v) and not (k == "verdicts" and v == "own")}
         work = work_dir(cfg.experiment_dir, "post_train_loop", key, stage.work_inputs())
         stage.lock(work)  # one run at a time trains into a work dir
         optimizer = torch.optim.Adam(policy_param_groups(policy, rl.lr_backbone, rl.lr_heads))

@@ -17,7 +17,8 @@ from worldenv_core import distributed
 from worldenv_core.envs.replay import RealStart
 from worldenv_core.imagination.env import Context, mid_episode_frames
 from worldenv_core.models.checkpoint import save_model
-from worldenv_core.rl.loop import RolloutBatch, collect_rollouts, informative_groups, merge, ppo_update, select
+from worldenv_core.rl.loop import (RolloutBatch, collect_rollouts, informative_groups, merge, permute_verdicts,
+                                   ppo_update, select)
 from worldenv_core.rl.real_rollouts import collect_real_rollouts
 from worldenv_core.training import Phase, per_step, step_seed
 
@@ -89,6 +90,8 @@ def rl_phase(policy, optimizer, collect: Collect, n_contexts: int, rl, seed: int
         mine = distributed.shard(list(range(len(picks))), distributed.rank(), distributed.world_size())
         behaviour = copy.deepcopy(policy).eval()
         batch = merge(distributed.gather(collect(behaviour, [picks[i] for i in mine], [streams[i] for i in mine])))
+        if rl.get("verdicts", "own") == "permuted":  # the control: the same successes on other rollouts
+            batch = permute_verdicts(batch, rl.n_rollouts, g)
         keep = informative_groups(batch, rl.n_rollouts) if rl.filter_groups else torch.ones_like(batch.by_reflector)
         stats = (ppo_update(policy, optimizer, select(batch, keep), rl.ppo_epochs, rl.epsilon, rl.minibatch, generator=g,
                             target_kl=rl.target_kl)

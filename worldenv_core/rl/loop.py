@@ -7,6 +7,8 @@ action (the sum over its action dimensions); `mask` marks the steps a rollout re
 
 from __future__ import annotations
 
+import dataclasses
+
 from dataclasses import dataclass
 
 import torch
@@ -138,6 +140,17 @@ def informative_groups(batch: RolloutBatch, n_rollouts: int) -> torch.Tensor:
     verdicts = batch.by_reflector.view(-1, n_rollouts)
     mixed = verdicts.any(-1) & ~verdicts.all(-1)
     return mixed.repeat_interleave(n_rollouts)
+
+
+def permute_verdicts(batch: RolloutBatch, n_rollouts: int, generator: torch.Generator | None = None) -> RolloutBatch:
+    """A control, not the method: the batch's verdicts (reward and success flag) shuffled across its
+    rollouts, advantages recomputed. As many successes as the environment gave, on rollouts it did
+    not give them to: a policy that gains under it gained from the update itself (its noise, its
+    step), not from what the environment told it."""
+    perm = torch.randperm(len(batch.rewards), generator=generator)
+    rewards = batch.rewards[perm]
+    return dataclasses.replace(batch, rewards=rewards, by_reflector=batch.by_reflector[perm],
+                               advantages=rloo_advantages(rewards.view(-1, n_rollouts)).reshape(-1))
 
 
 def select(batch: RolloutBatch, keep: torch.Tensor) -> RolloutBatch:

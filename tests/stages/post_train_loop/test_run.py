@@ -70,7 +70,8 @@ def test_loop_resumes_and_rejects_bad_settings(trained):
     with pytest.raises(ConfigError, match="imagined_rollouts must be at least 2"):
         post_train_loop(cfg("post_train_loop", exp, *LOOP, "eval.imagined_rollouts=1"))
     for override, match in (("rl.n_rollouts=1", "at least 2"), ("eta=1.5", r"eta .* must be in \[0, 1\]"),
-                            ("rl.epsilon=0", "epsilon .* must be > 0"), ("rl.target_kl=0", "target_kl must be > 0")):
+                            ("rl.epsilon=0", "epsilon .* must be > 0"), ("rl.target_kl=0", "target_kl must be > 0"),
+                            ("rl.verdicts=shuffled", r"rl.verdicts must be one of \['own', 'permuted'\]")):
         with pytest.raises(ConfigError, match=match):
             post_train_loop(cfg("post_train_loop", exp, *LOOP, override))
 

@@ -168,3 +168,20 @@ def test_groups_whose_verdicts_all_agree_are_dropped_before_ppo():
     kept = select(batch, keep)
     assert kept.instruction[:, 0].tolist() == [2.0, 3.0] and torch.allclose(kept.advantages, torch.tensor([0.5, -0.5]))
     assert kept.frames.shape[0] == kept.mask.shape[0] == 2
+
+
+def test_permuted_verdicts_keep_how_many_succeed_and_move_them_to_other_rollouts():
+    from worldenv_core.rl.loop import RolloutBatch, permute_verdicts
+
+    rewards = torch.tensor([0.9, 0.1, 0.2, 0.1, 0.8, 0.7, 0.1, 0.3])
+    r = len(rewards)
+    batch = RolloutBatch(frames=torch.zeros(r, 1, 3, 4, 4, dtype=torch.uint8), proprio=torch.zeros(r, 1, 7),
+                         instruction=torch.arange(r).float()[:, None], actions=torch.zeros(r, 1, 4, 7),
+                         logp_old=torch.zeros(r, 1, 4), mask=torch.ones(r, 1, 4), rewards=rewards,
+                         advantages=rloo_advantages(rewards.view(2, 4)).reshape(-1), t_end=torch.arange(r),
+                         by_reflector=rewards > 0.5, beta_mean=0.0)
+    out = permute_verdicts(batch, 4, torch.Generator().manual_seed(0))
+    assert sorted(out.rewards.tolist()) == sorted(rewards.tolist()) and not torch.equal(out.rewards, rewards)
+    assert torch.equal(out.by_reflector, out.rewards > 0.5)  # each verdict moves with its reward
+    assert torch.allclose(out.advantages, rloo_advantages(out.rewards.view(2, 4)).reshape(-1))
+    assert torch.equal(out.t_end, batch.t_end) and torch.equal(out.instruction, batch.instruction)  # rollouts stay
