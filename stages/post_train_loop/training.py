@@ -90,7 +90,7 @@ def rl_phase(policy, optimizer, collect: Collect, n_contexts: int, rl, seed: int
         mine = distributed.shard(list(range(len(picks))), distributed.rank(), distributed.world_size())
         behaviour = copy.deepcopy(policy).eval()
         batch = merge(distributed.gather(collect(behaviour, [picks[i] for i in mine], [streams[i] for i in mine])))
-        if rl.get("verdicts", "own") == "permuted":  # the control: the same successes on other rollouts
+        if rl.verdicts == "permuted":  # the control: the same successes on other rollouts
             batch = permute_verdicts(batch, rl.n_rollouts, g)
         keep = informative_groups(batch, rl.n_rollouts) if rl.filter_groups else torch.ones_like(batch.by_reflector)
         stats = (ppo_update(policy, optimizer, select(batch, keep), rl.ppo_epochs, rl.epsilon, rl.minibatch, generator=g,

@@ -15,8 +15,8 @@ import torch
 
 from stages.train_reflector.horizon import lead_table, plot_by_lead, recognition_by_lead
 from worldenv_core.contract import TaskContract
-from worldenv_core.imagination.simulator import rendered_copy
 from worldenv_core.data.selection import episode_key
+from worldenv_core.imagination.simulator import ImaginedSimulator, rendered_copy, replay_from_start
 from worldenv_core.manifest import ArtefactError
 from worldenv_core.metrics import binary_metrics
 from worldenv_core.models.checkpoint import read_config
@@ -66,24 +66,20 @@ def imagine_held_out(cfg, contract: TaskContract, stage, held: list[Path], held_
 
 def simulators(cfg, contract: TaskContract, ckpt: str, eps: list) -> dict:
     """World simulator `ckpt` set up for each task of `eps`: task id -> ImaginedSimulator."""
-    from worldenv_core.imagination.simulator import ImaginedSimulator
-
     return {tid: ImaginedSimulator.from_checkpoint(ckpt, tid, cfg.imagined.sampling_steps, contract=contract)
             for tid in sorted({ep.meta.task_id for ep in eps})}
 
 
-def imagine(cfg, contract: TaskContract, ckpt: str, eps: list) -> list[torch.Tensor]:
-    """Open-loop replays of `eps` from their first frame and recorded actions by world simulator
-    `ckpt`, batched per task: per episode (T+1, 3, H, W) uint8."""
-    from worldenv_core.imagination.simulator import replay_from_start
-
+def imagine(cfg, sims: dict, eps: list) -> list[torch.Tensor]:
+    """Open-loop replays of `eps` from their first frame and recorded actions by the world simulator
+    set up per task in `sims` (`simulators`), batched per task: per episode (T+1, 3, H, W) uint8."""
     out = {}
     g = torch.Generator().manual_seed(cfg.seed)
-    for tid, sim in simulators(cfg, contract, ckpt, eps).items():
+    for tid, sim in sims.items():
         group = [ep for ep in eps if ep.meta.task_id == tid]
         for ep, frames in zip(group, replay_from_start(sim, group, camera=cfg.camera, generator=g)):
             out[id(ep)] = frames
-    log.info("imagined %d episodes with world simulator %s", len(eps), ckpt)
+    log.info("imagined %d episodes of %d tasks", len(eps), len(sims))
     return [out[id(ep)] for ep in eps]
 
 
@@ -122,8 +118,8 @@ def evaluate_held_out(cfg, contract: TaskContract, stage, model, encoder, held: 
         imagined = imagine_held_out(cfg, contract, stage, held, held_eps)
         if imagined is not None:
             imagined_eps, ckpt = imagined
-            videos["imagined"] = imagine(cfg, contract, ckpt, imagined_eps)
-            sims = simulators(cfg, contract, ckpt, imagined_eps)
+            sims = simulators(cfg, contract, ckpt, imagined_eps)  # loaded once, for all three uses below
+            videos["imagined"] = imagine(cfg, sims, imagined_eps)
             # the real frames as the world model draws them: what its rendering alone costs the verdict
             videos["rendered"] = [rendered_copy(sims[ep.meta.task_id], ep.video(cfg.camera)) for ep in imagined_eps]
             if cfg.imagined.leads:  # and from a few steps before each outcome: where the verdict is lost

@@ -146,9 +146,9 @@ def run(cfg: DictConfig) -> dict:
         record_checkpoint(stage, final)
         t1 = time.perf_counter()
         report = evaluate_held_out(cfg, contract, stage, model, encoder, held, held_eps, cv, work)
-        for name in ("reflector_eval.json", "reflector_eval.md", "reflector_curves.png", "reflector_by_lead.png"):
-            if name != "reflector_by_lead.png" or "imagined_by_lead" in report:
-                stage.add_output(work / name, kind="report" if name.endswith(("json", "md")) else "plot")
+        plots = ["reflector_curves.png"] + (["reflector_by_lead.png"] if "imagined_by_lead" in report else [])
+        for name in ("reflector_eval.json", "reflector_eval.md", *plots):
+            stage.add_output(work / name, kind="report" if name.endswith(("json", "md")) else "plot")
         stage.metrics.update({"episodes": len(episodes), "held_out": len(held_eps), "steps": cfg.train.steps,
                               "paired_episodes": len(pairs), "eta": eta, "eta_chosen_by": chosen_by,
                               **({"eta_pairs": on_pairs["pairs"]} if on_pairs else {}),

@@ -13,7 +13,7 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 from tqdm import tqdm
 
-from stages.train_reflector.evaluation import ETA_SWEEP, evaluate_videos, imagine, termination_at
+from stages.train_reflector.evaluation import ETA_SWEEP, evaluate_videos, imagine, simulators, termination_at
 from worldenv_core.contract import TaskContract
 from worldenv_core.data.selection import episode_key
 from worldenv_core.models.reflector_data import PrefixSampler
@@ -160,6 +160,6 @@ def imagined_copies(cfg, contract: TaskContract, ckpt: str, episodes: list) -> l
     real episodes' oracle flags as labels: so the reflector also learns what success looks like in
     the world model's rendering, which is where post-training asks it."""
     return [dataclasses.replace(ep, images={cfg.camera: frames.permute(0, 2, 3, 1).numpy()})
-            for ep, frames in zip(episodes, imagine(cfg, contract, ckpt, episodes))]
+            for ep, frames in zip(episodes, imagine(cfg, simulators(cfg, contract, ckpt, episodes), episodes))]
 
 
