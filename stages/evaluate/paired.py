@@ -42,18 +42,28 @@ def read_evaluation(manifest: Manifest | None, name: str) -> tuple[dict | None, 
     return ctx.report_json(rec, "results.json"), ctx.report_json(rec, "episodes.json")
 
 
+def same_policy(first: dict, other: dict) -> bool:
+    """One policy when the weights digests agree (a checkpoint copied, released or renamed stays
+    itself); evaluations kept before results.json recorded the digest are matched by checkpoint name."""
+    if first.get("policy_digest") and other.get("policy_digest"):
+        return first["policy_digest"] == other["policy_digest"]
+    return checkpoint_name(first["policy"]) == checkpoint_name(other["policy"])
+
+
 def pooled_episodes(manifest: Manifest | None, names: list[str]) -> tuple[dict[tuple[int, int], bool], dict]:
     """{(task id, init state): success} over the evaluations' episodes (record ids or output
     folders), and their setting (policy, termination, suite): one throughout, and no episode twice
     (which of two runs would count?)."""
-    episodes, seen = {}, {}
+    episodes, seen, first = {}, {}, None
     for rid in names:
         summary, rows = read_evaluation(manifest, rid)
         if rows is None or summary is None:
             raise ConfigError(f"{rid}'s episodes.json or results.json is gone")
-        # the checkpoint by name, not by path: evaluations kept in the repository ran on other machines
-        setting = {"termination": summary["termination"], "suite": summary["suite"],
-                   "policy": checkpoint_name(summary["policy"])}
+        first = first or summary
+        if not same_policy(first, summary):
+            raise ConfigError(f"{rid} evaluated policy {checkpoint_name(summary['policy'])!r}, the evaluations before it "
+                              f"{checkpoint_name(first['policy'])!r} (other weights): pool only evaluations of one policy")
+        setting = {"termination": summary["termination"], "suite": summary["suite"]}
         for what, value in setting.items():
             if seen.setdefault(what, value) != value:
                 raise ConfigError(f"{rid} evaluated {what} {value!r}, the evaluations before it "
@@ -63,7 +73,7 @@ def pooled_episodes(manifest: Manifest | None, names: list[str]) -> tuple[dict[t
             if key in episodes:
                 raise ConfigError(f"task {key[0]} init state {key[1]} is in {rid} and in an evaluation before it")
             episodes[key] = bool(r["success"])
-    return episodes, seen
+    return episodes, {**seen, "policy": checkpoint_name(first["policy"])}
 
 
 def compare(a: dict, b: dict) -> dict:

@@ -12,7 +12,7 @@ from pathlib import Path
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from stages.evaluate.cache import JobCache
+from stages.evaluate.cache import JobCache, checkpoint_digest
 from stages.evaluate.evaluation import record_mode
 from stages.report import write_report
 from worldenv_core.envs.collection import PolicyEvalJob, evaluate_policy_task
@@ -141,7 +141,8 @@ def run(cfg: DictConfig) -> dict:
         for mode, stage in stages.items():
             out_dir = run_dir / mode if cfg.termination == "all" else run_dir
             summaries[mode] = record_mode(stage, mode, [r for r in rows if r["termination"] == mode], videos,
-                                          {"policy": policy_path, "init_states": cfg.init_states,
+                                          {"policy": policy_path, "policy_digest": checkpoint_digest(policy_path),
+                                           "init_states": cfg.init_states,
                                            "first_init_state": cfg.first_init_state, "suite": suite,
                                            "max_steps": max_steps}, reflector_path, eta, out_dir)
             # termination=all: the modes share one rollout per episode, counted once (on the first mode);

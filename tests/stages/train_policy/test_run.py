@@ -151,6 +151,15 @@ def test_a_later_init_state_range_pools_with_the_first_into_one_paired_compariso
     text = (kept[0] / "results.json").read_text()
     assert str(exp) not in text and json.loads(text)["record"] == first_id
     assert paired.main(["-", "--a", *map(str, kept), "--b", *folders])["episodes"] == 2
+    # a policy is its weights: the same weights under another name (released, copied) pool, other weights do not
+    renamed = json.loads((kept[1] / "results.json").read_text())
+    assert len(renamed["policy_digest"]) == 64
+    renamed["policy"] = "checkpoints/tiny/released"
+    (kept[1] / "results.json").write_text(json.dumps(renamed))
+    assert paired.main(["-", "--a", *map(str, kept), "--b", *folders])["episodes"] == 2
+    (kept[1] / "results.json").write_text(json.dumps({**renamed, "policy_digest": "0" * 64}))
+    with pytest.raises(ConfigError, match="other weights"):
+        paired.main(["-", "--a", *map(str, kept), "--b", *folders])
     with pytest.raises(ConfigError, match="no experiment directory"):
         paired.main(["-", "--a", first_id, "--b", *folders])
     with pytest.raises(ConfigError, match="init state 0 is in"):
