@@ -33,6 +33,7 @@ from stages.evaluate_imagination.evaluation import TARGETS, meets
 from worldenv_core.cli import user_errors
 from worldenv_core.errors import ConfigError
 from worldenv_core.files import write_text_atomic
+from worldenv_core.imagination.verdict import misattributed, verdict_metrics
 from worldenv_core.manifest import Manifest
 from worldenv_core.report import POLICIES, TERMINATIONS, ReportContext, markdown_table, newest
 
@@ -112,7 +113,7 @@ def limits(experiment: str | Path, task: str) -> dict:
 
 
 def _pct(x: float | None) -> str:
-    return "" if x is None else f"{100 * x:.1f} %"
+    return f"{100 * x:.1f} %" if _num(x) else ""
 
 
 def _arrow(pair: tuple[float, float] | None) -> str:
@@ -223,12 +224,20 @@ def kept_rows(spec_path: str | Path) -> tuple[list[dict], list[dict]]:
     verdicts = []
     for v in spec.get("verdicts") or []:
         fidelity = json.loads((root / v["suite"] / v["run"] / "fidelity.json").read_text())
-        h = fidelity["headline"]
-        verdicts.append({"task": v["suite"], "run": v["run"], "contexts": v.get("contexts", ""),
+        h, contexts = fidelity["headline"], v.get("contexts", "")
+        pairs = root / v["suite"] / v["run"] / "pairs.json"
+        pair_rows = json.loads(pairs.read_text())[fidelity["headline_policy"]]["rows"] if pairs.is_file() else []
+        void = misattributed(pair_rows)
+        if any(void):  # recomputed without them; the closed-loop runs were keyed the same way
+            h = {**verdict_metrics([r for r, x in zip(pair_rows, void) if not x], fidelity["eta"]),
+                 "closed_loop_success": None}
+            contexts += (f" ({sum(void)} of {len(pair_rows)} pairs void: their init-state contexts were paired with another "
+                         "task's replays; figures from the rest)")
+        verdicts.append({"task": v["suite"], "run": v["run"], "contexts": contexts,
                          "policy": v.get("policy") or fidelity.get("headline_policy", ""),
                          **{k: h.get(k) for k in ("rollouts", "imagined_success", "real_success", "hack_rate",
                                                   "closed_loop_success")},
-                         "holds": _verdict_holds(h)})
+                         "holds": _verdict_holds(h) if h.get("rollouts") else ["not measured: no valid pair"]})
     return rows, verdicts
 
 

@@ -30,8 +30,9 @@ FIGURES = ("rollouts", "imagined_success", "real_success", "hack_rate", "hack_ra
 
 
 def start_frame(row: dict) -> tuple[str, int]:
-    """(episode, frame) a pair starts from: `start` is '<episode>@<frame>' for demo frames, 'init<k>' for
-    benchmark init states (frame 0 of a scene that has no episode)."""
+    """(episode, frame) a pair starts from: `start` is '<episode>@<frame>' for demo frames, 'task<t>/init<k>'
+    ('init<k>' in pairs made before the task was named) for benchmark init states (frame 0 of a scene that
+    has no episode)."""
     episode, _, frame = str(row.get("start") or row["context"]).rpartition("@")
     return (episode, int(frame)) if episode else (frame, 0)
 

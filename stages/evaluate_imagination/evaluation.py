@@ -15,7 +15,7 @@ from stages.evaluate_imagination.contexts import PairedContext
 from stages.evaluate_imagination.judges import Judge
 from stages.evaluate_imagination.levers import lever_rows, plot_levers
 from worldenv_core.contract import TaskContract
-from worldenv_core.envs.replay import PairedReplayJob, replay_context
+from worldenv_core.envs.replay import PairedReplayJob, by_start, replay_context
 from worldenv_core.files import write_text_atomic
 from worldenv_core.imagination.pairs import store_pair_frames
 from worldenv_core.imagination.verdict import (as_judged_by, eta_curve, evaluator_metrics, frame_metrics, imagine, judge,
@@ -64,9 +64,8 @@ def pair_variant(cfg, contract: TaskContract, v: Variant, env, contexts: list[Pa
                             closed_loop_seeds=tuple(cfg.seed * 1_000_003 + i * 101 + k for k in range(cfg.closed_loop_rollouts)),
                             noise_scale=v.noise_scale, horizon=cfg.horizon)
             for i, pc in enumerate(contexts)]
-    real = {r["start"].key: r for r in run_jobs(replay_context, jobs, workers=cfg.workers, launcher=cfg.launcher,
-                                                 desc=f"real replay {v.name}", ray_address=cfg.ray_address,
-                                                 progress=cfg.progress, unit="ctx")}
+    real = by_start(run_jobs(replay_context, jobs, workers=cfg.workers, launcher=cfg.launcher,
+                             desc=f"real replay {v.name}", ray_address=cfg.ray_address, progress=cfg.progress, unit="ctx"))
     rows, closed = [], []
     for i, pc in enumerate(contexts):
         res = real[pc.start.key]

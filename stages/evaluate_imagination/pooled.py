@@ -17,7 +17,7 @@ from pathlib import Path
 from stages.evaluate_imagination.evaluation import judged
 from worldenv_core.cli import user_errors
 from worldenv_core.errors import ConfigError
-from worldenv_core.imagination.verdict import as_judged_by
+from worldenv_core.imagination.verdict import as_judged_by, misattributed
 
 FIGURES = ("rollouts", "imagined_success", "real_success", "auroc", "auroc_ci95", "f1", "f1_ci95", "precision",
            "recall", "hack_rate", "hack_rate_ci95", "hacks", "max_task_gap", "timing_error_median")
@@ -35,11 +35,14 @@ def all_of(row: dict, etas: dict[str | None, float]) -> dict:
 
 def read_runs(folders: list[str | Path], all_policies: bool = False) -> tuple[list[tuple[dict, dict]], list[dict]]:
     """-> ([(fidelity.json, pairs.json) of each run], the rows of their headline policy's pairs, or of
-    every paired policy's)."""
+    every paired policy's), without pairs whose real side is another context's (`misattributed`)."""
     runs = [(json.loads((Path(f) / "fidelity.json").read_text()), json.loads((Path(f) / "pairs.json").read_text()))
             for f in folders]
-    rows = [r for s, pairs in runs for name, v in pairs.items()
-            if all_policies or name == s["headline_policy"] for r in v["rows"]]
+    rows = []
+    for s, pairs in runs:
+        for name, v in pairs.items():
+            if all_policies or name == s["headline_policy"]:
+                rows += [r for r, void in zip(v["rows"], misattributed(v["rows"])) if not void]
     return runs, rows
 
 

@@ -23,7 +23,7 @@ from stages.evaluate.paired import pooled_episodes, read_evaluation
 from worldenv_core.cli import user_errors
 from worldenv_core.errors import ConfigError
 from worldenv_core.files import write_text_atomic
-from worldenv_core.imagination.verdict import as_judged_by, context_key, judge
+from worldenv_core.imagination.verdict import as_judged_by, context_key, judge, misattributed
 from worldenv_core.metrics import spearman
 from worldenv_core.viz import figure, save_figure
 
@@ -50,7 +50,9 @@ def imagined_skill(folder: str | Path) -> dict[str, dict[str, np.ndarray]]:
             continue
         for name, (judge_name, eta) in judges.items():
             groups = defaultdict(list)
-            for row in data["rows"]:
+            for row, void in zip(data["rows"], misattributed(data["rows"])):
+                if void:  # its real side is another context's
+                    continue
                 j = judge(as_judged_by(row, judge_name) if judge_name else row, eta)
                 groups[context_key({**row, "policy": None})].append((j["imagined_success"], j["real_success"]))
             out[name][checkpoint_name(path)] = {k: np.mean(v, axis=0) for k, v in groups.items()}

@@ -178,8 +178,10 @@ def variant_key(v: Variant) -> str:
 
 
 def pairs_key(weights_sha256: str, noise_scale: float = 1.0, paired: bool = True) -> str:
-    """The pairs file's name for a policy's weights (by their hash), noise scale and pairing."""
-    return config_hash({"policy": weights_sha256, "noise": float(noise_scale), "paired": paired})
+    """The pairs file's name for a policy's weights (by their hash), noise scale and pairing. `pairing` 2:
+    files made before each benchmark init state's replay was told apart by task (every task's init-state
+    contexts were paired with one task's replays) are not found, so they are made again."""
+    return config_hash({"policy": weights_sha256, "noise": float(noise_scale), "paired": paired, "pairing": 2})
 
 
 def _name(checkpoint: str) -> str:

@@ -12,7 +12,7 @@ import torch
 
 from worldenv_core.contract import TaskContract
 from worldenv_core.envs.collection import PolicyEvalJob, evaluate_policy_task
-from worldenv_core.envs.replay import PairedReplayJob, RealStart, replay_context
+from worldenv_core.envs.replay import PairedReplayJob, RealStart, by_start, replay_context
 from worldenv_core.envs.tasks import get_task
 from worldenv_core.manifest import StageRecord
 from worldenv_core.parallel import run_jobs
@@ -66,8 +66,8 @@ def imagined_success(policy, env, contexts: list[Context], n_contexts: int, n_ro
     jobs = [PairedReplayJob(paired.contract, paired.starts[i], actions=tuple(runs[k * n_rollouts + j].actions
                                                                              for j in range(n_rollouts)),
                             keep=((),) * n_rollouts) for k, i in enumerate(chosen)]
-    real = {r["start"].key: r for r in run_jobs(replay_context, jobs, workers=paired.workers, desc="paired replay",
-                                                 progress=paired.progress, unit="ctx")}
+    real = by_start(run_jobs(replay_context, jobs, workers=paired.workers, desc="paired replay",
+                             progress=paired.progress, unit="ctx"))
     rows = [pair(runs[k * n_rollouts + j], real[paired.starts[i].key]["replays"][j], paired.starts[i].task_id, "episode",
                  "policy", env.chunk) for k, i in enumerate(chosen) for j in range(n_rollouts)]
     m = verdict_metrics(rows, env.eta)

@@ -119,3 +119,33 @@ def test_the_repositorys_kept_table_is_what_its_spec_generates(tmp_path):
     repo = Path(__file__).resolve().parents[2]
     write_kept(repo / "results" / "suites.yaml", tmp_path)
     assert (tmp_path / "suites.md").read_text() == (repo / "results" / "suites.md").read_text()
+
+
+def test_a_kept_verdict_drops_the_pairs_whose_real_side_belonged_to_another_tasks_start(tmp_path):
+    """Pairs made before a benchmark init state's start named its task ('init0' in two tasks) have another
+    task's replays as their real side: the kept table recomputes the verdict without them and says so."""
+    from stages.suites import kept_rows
+
+    def row(task, kind, start, imagined, real_first):
+        return {"task_id": task, "context": 0, "context_kind": kind, "start": start, "chunk": 8, "steps": 32,
+                "imagined_scores": [0.0, imagined], "real_scores": [0.0, 0.0], "real_first_success": real_first,
+                "real_error": None}
+
+    rows = [row(0, "init", "init0", 0.9, None), row(1, "init", "init0", 0.9, None),  # void: one start, two tasks
+            row(0, "episode", "d/a.mcap@5", 0.9, 3), row(1, "episode", "d/b.mcap@5", 0.1, 3)]
+    folder = tmp_path / "libero_goal" / "evaluate_imagination-v"
+    folder.mkdir(parents=True)
+    (folder / "fidelity.json").write_text(json.dumps({"headline_policy": "p", "eta": 0.5, "headline": {
+        "rollouts": 4, "imagined_success": 0.75, "real_success": 0.5, "hack_rate": 0.67}}))
+    (folder / "pairs.json").write_text(json.dumps({"p": {"rows": rows}}))
+    spec = tmp_path / "suites.yaml"
+    spec.write_text("verdicts:\n- {suite: libero_goal, run: evaluate_imagination-v, contexts: starts}\n")
+    (v,) = kept_rows(spec)[1]
+    assert v["rollouts"] == 2 and v["imagined_success"] == 0.5 and v["real_success"] == 1.0 and v["hack_rate"] == 0.0
+    assert "2 of 4 pairs void" in v["contexts"] and v["closed_loop_success"] is None
+    # a run whose init states each served one task (or named their task) keeps every pair
+    for r, start in zip(rows[:2], ("task0/init0", "task1/init0")):
+        r["start"] = start
+    (folder / "pairs.json").write_text(json.dumps({"p": {"rows": rows}}))
+    (v,) = kept_rows(spec)[1]
+    assert v["rollouts"] == 4 and v["contexts"] == "starts"

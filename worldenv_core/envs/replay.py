@@ -40,7 +40,21 @@ class RealStart:
 
     @property
     def key(self) -> str:
-        return f"init{self.init_state}" if self.episode is None else f"{self.episode}@{self.frame}"
+        """Unique among the starts of a run: a benchmark init state is one per task, so its key names the
+        task (results keyed by 'init0' alone once paired every task's start with the last task's replays)."""
+        return f"task{self.task_id}/init{self.init_state}" if self.episode is None else f"{self.episode}@{self.frame}"
+
+
+def by_start(results) -> dict[str, dict]:
+    """Replay results (`replay_context`'s, in completion order) by their start's key. Two starts of one
+    run with one key would pair a context with another's replays, so a repeated key is refused."""
+    out: dict[str, dict] = {}
+    for r in results:
+        key = r["start"].key
+        if key in out:
+            raise ValueError(f"two contexts start at {key}: their replays cannot be told apart")
+        out[key] = r
+    return out
 
 
 class ReplayError(RuntimeError):

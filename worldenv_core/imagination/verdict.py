@@ -20,6 +20,7 @@ agreement:
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -167,9 +168,23 @@ def verdict_metrics(rows: list[dict], eta: float, intervals: bool = False) -> di
             **(context_intervals([j["imagined_reward"] for j in judged], real, eta, rows) if intervals else {})}
 
 
+def misattributed(rows: list[dict]) -> list[bool]:
+    """Which pairs have another context's real side: pairs made before a benchmark init state's start named
+    its task ('init<k>', not 'task<t>/init<k>') where one run used that init state in more than one task.
+    Those runs keyed the replays by start, so every task's imagined rollouts from it were paired with the
+    replays of one task's actions; their real outcomes are void (the imagined side stands)."""
+    legacy = lambda r: r.get("context_kind") == "init" and re.fullmatch(r"init\d+", str(r.get("start"))) is not None  # noqa: E731
+    tasks: dict = {}
+    for r in rows:
+        if legacy(r):
+            tasks.setdefault((r.get("policy"), r["start"]), set()).add(r.get("task_id"))
+    return [legacy(r) and len(tasks[(r.get("policy"), r["start"])]) > 1 for r in rows]
+
+
 def context_key(row: dict) -> tuple:
     """Which context a paired rollout started from: its group for RLOO and for the bootstrap."""
-    return row.get("policy"), row.get("context_kind"), row.get("start") or row["context"]
+    # the task too: a benchmark init state's start ('init0' in older pairs) is one per task
+    return row.get("policy"), row.get("task_id"), row.get("context_kind"), row.get("start") or row["context"]
 
 
 def context_intervals(reward, real: np.ndarray, eta: float, rows: list[dict]) -> dict:

@@ -38,6 +38,7 @@ def test_every_imagined_rollout_is_paired_with_its_real_replay(paired):
     rows = pairs["sft@1"]["rows"]
     assert pairs["sft@3"]["rows"] == [] and len(pairs["sft@3"]["closed_loop"]) == 2
     assert [r["context_kind"] for r in rows] == ["init", "init", "episode", "episode"]
+    assert rows[0]["start"] == rows[1]["start"] == "task0/init0"  # an init state is one per task: its key names it
     for r in rows:  # watched to the horizon in imagination and replayed to it in reality
         assert r["real_error"] is None and r["steps"] == 16 and len(r["imagined_scores"]) == len(r["real_scores"]) == 3
         assert all(0.0 <= x <= 1.0 for x in r["imagined_scores"] + r["real_scores"])

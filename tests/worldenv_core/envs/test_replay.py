@@ -5,7 +5,8 @@ import pytest
 
 from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.envs.recording import cached_env
-from worldenv_core.envs.replay import PairedReplayJob, RealStart, ReplayError, execute, replay_context, restore
+from worldenv_core.envs.replay import (PairedReplayJob, RealStart, ReplayError, by_start, execute, replay_context,
+                                     restore)
 
 pytestmark = pytest.mark.sim
 
@@ -57,3 +58,14 @@ def test_a_replay_job_returns_one_real_outcome_per_action_sequence(demo, contrac
     assert out["start"] == start and out["closed_loop"] == []
     assert [r["success"] for r in out["replays"]] == [True, False]
     assert set(out["replays"][0]["frames"]) == {8} and set(out["replays"][1]["frames"]) == {0, 4}
+
+
+def test_each_benchmark_init_state_has_its_own_key_per_task_and_a_repeated_key_is_refused():
+    # init state 0 of task 0 and of task 1 are two contexts: keyed alike, one task's replays once stood for both
+    starts = [RealStart(task_id=t, init_state=i) for t in (0, 1) for i in (0, 1)]
+    assert len({s.key for s in starts}) == 4
+    assert RealStart(task_id=0, episode="d/e.mcap", frame=3).key == "d/e.mcap@3"
+    got = by_start([{"start": s, "replays": [k]} for k, s in enumerate(starts)])
+    assert [got[s.key]["replays"] for s in starts] == [[0], [1], [2], [3]]
+    with pytest.raises(ValueError, match="cannot be told apart"):
+        by_start([{"start": starts[0]}, {"start": RealStart(task_id=0, init_state=0)}])

@@ -96,8 +96,13 @@ def test_mixed_groups_count_the_contexts_whose_rollouts_disagree_imagined_and_re
         r["context"] = i // 2
     m = verdict_metrics(rows, eta=0.5)
     assert m["imagined_mixed_groups"] == pytest.approx(1 / 3) and m["real_mixed_groups"] == pytest.approx(1 / 3)
+    # pairs kept before a benchmark init state's start named its task: 'init0' of three tasks, three groups
     for i, r in enumerate(rows):
-        r["context"] = i  # one rollout per context: no group to disagree
+        r.update(context_kind="init", start="init0", task_id=i // 2)
+    m = verdict_metrics(rows, eta=0.5)
+    assert m["imagined_mixed_groups"] == pytest.approx(1 / 3) and m["real_mixed_groups"] == pytest.approx(1 / 3)
+    for i, r in enumerate(rows):
+        r["context"], r["start"] = i, f"task{i // 2}/init{i}"  # one rollout per context: no group to disagree
     assert "real_mixed_groups" not in verdict_metrics(rows, eta=0.5)
 
 
