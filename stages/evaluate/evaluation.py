@@ -63,8 +63,8 @@ def record_mode(stage, mode: str, rows: list[dict], videos: dict, setting: dict,
     out_dir.mkdir(parents=True, exist_ok=True)
     summary = summarise(rows)
     suite = setting["suite"]
-    summary.update(policy=setting["policy"], policy_digest=setting["policy_digest"], termination=mode, init_states=setting["init_states"],
-                   first_init_state=setting["first_init_state"],
+    summary.update(policy=setting["policy"], policy_digest=setting["policy_digest"], termination=mode,
+                   init_states=setting["init_states"], first_init_state=setting["first_init_state"],
                    report_dir=str(out_dir), suite=suite, max_steps=setting["max_steps"])
     if mode == "reflector":
         summary.update(reflector=reflector_path, eta=eta, reflector_termination=termination_metrics(

@@ -138,10 +138,11 @@ def run(cfg: DictConfig) -> dict:
             rows += out["rows"]
             for i, frames in out["videos"].items():
                 videos[(out["rows"][0]["task_id"], i)] = frames
+        digest = checkpoint_digest(policy_path)  # once for every mode: the weights are read whole
         for mode, stage in stages.items():
             out_dir = run_dir / mode if cfg.termination == "all" else run_dir
             summaries[mode] = record_mode(stage, mode, [r for r in rows if r["termination"] == mode], videos,
-                                          {"policy": policy_path, "policy_digest": checkpoint_digest(policy_path),
+                                          {"policy": policy_path, "policy_digest": digest,
                                            "init_states": cfg.init_states,
                                            "first_init_state": cfg.first_init_state, "suite": suite,
                                            "max_steps": max_steps}, reflector_path, eta, out_dir)

@@ -173,12 +173,12 @@ def misattributed(rows: list[dict]) -> list[bool]:
     its task ('init<k>', not 'task<t>/init<k>') where one run used that init state in more than one task.
     Those runs keyed the replays by start, so every task's imagined rollouts from it were paired with the
     replays of one task's actions; their real outcomes are void (the imagined side stands)."""
-    legacy = lambda r: r.get("context_kind") == "init" and re.fullmatch(r"init\d+", str(r.get("start"))) is not None  # noqa: E731
+    legacy = [r.get("context_kind") == "init" and re.fullmatch(r"init\d+", str(r.get("start"))) is not None
+              for r in rows]
     tasks: dict = {}
-    for r in rows:
-        if legacy(r):
-            tasks.setdefault((r.get("policy"), r["start"]), set()).add(r.get("task_id"))
-    return [legacy(r) and len(tasks[(r.get("policy"), r["start"])]) > 1 for r in rows]
+    for r in (r for r, old in zip(rows, legacy) if old):
+        tasks.setdefault((r.get("policy"), r["start"]), set()).add(r.get("task_id"))
+    return [old and len(tasks[(r.get("policy"), r["start"])]) > 1 for r, old in zip(rows, legacy)]
 
 
 def context_key(row: dict) -> tuple:
