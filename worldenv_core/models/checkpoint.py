@@ -35,11 +35,16 @@ class CheckpointError(ValueError):
 
 
 def save_model(path: str | Path, model: torch.nn.Module, model_config: dict, meta: dict | None = None) -> Path:
+    return save_state(path, model.state_dict(), model_config, meta)
+
+
+def save_state(path: str | Path, state: dict[str, torch.Tensor], model_config: dict, meta: dict | None = None) -> Path:
+    """A checkpoint folder from a state dict (`save_model` without the module: weights edited as tensors)."""
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    state = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
+    state = {k: v.detach().contiguous().cpu() for k, v in state.items()}
     save_file(state, str(tmp / WEIGHTS))
     os.chmod(tmp / WEIGHTS, 0o666 & ~_umask())  # safetensors writes 0600; checkpoints are shared like any output
     (tmp / CONFIG).write_text(json.dumps({"format": FORMAT, "model": model_config, "meta": meta or {}}, indent=2))

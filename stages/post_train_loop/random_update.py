@@ -1,0 +1,110 @@
+"""The random-update control: a policy's weights moved as far as a post-trained policy moved them,
+tensor by tensor, in a random direction.
+
+A post-trained policy that beats its SFT start may have gained from what the rewards said or merely
+from being moved a little away from the SFT weights. This control keeps the size of the update
+(each tensor's change has the post-trained policy's L2 norm) and throws away its direction (seeded
+Gaussian), so a real evaluation of it, paired with both, says which: a gain it shares is not RL's.
+Tensors the update left unchanged (normalisation statistics) stay unchanged. At the same norm a
+random direction changes the actions far less than a gradient step does, so `--scale` sets the size
+and `--frames` measures both changes of the mean action on recorded frames, to match them.
+
+    python -m stages.post_train_loop.random_update --policy checkpoints/libero_spatial/sft \\
+        --like <post_train_loop work>/policy --out outputs/libero_spatial-small/random_update/seed0 --seed 0 --scale 16 \\
+        --frames "data/libero_spatial/expert-*/task*/expert_0000.mcap"
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from stages.evaluate.keep import portable
+from worldenv_core.data.mcap_io import read_episode
+from worldenv_core.data.selection import expand_episode_paths
+from worldenv_core.cli import user_errors
+from worldenv_core.errors import ConfigError
+from worldenv_core.models.checkpoint import WEIGHTS, load_checkpoint, load_weights, read_config, save_state
+
+
+def random_update(base: dict[str, torch.Tensor], like: dict[str, torch.Tensor], seed: int,
+                  scale: float = 1.0) -> tuple[dict[str, torch.Tensor], int]:
+    """`base` + a random direction per tensor with `scale` x the norm of `like - base`. -> (state, tensors moved)"""
+    if not scale > 0:
+        raise ConfigError(f"scale must be > 0, got {scale}")
+    if base.keys() != like.keys():
+        raise ConfigError(f"the two policies have different tensors (only in the first: "
+                          f"{sorted(base.keys() - like.keys())[:3]}, only in the second: {sorted(like.keys() - base.keys())[:3]})")
+    generator = torch.Generator().manual_seed(seed)
+    out, moved = {}, 0
+    for name in sorted(base):  # sorted: the draw for a tensor does not depend on the file's order
+        a, b = base[name], like[name]
+        if a.shape != b.shape:
+            raise ConfigError(f"tensor {name} has shape {tuple(a.shape)} in the first policy, {tuple(b.shape)} in the second")
+        norm = float((b.double() - a.double()).norm()) if a.is_floating_point() else 0.0
+        if norm == 0.0:
+            out[name] = a.clone()
+            continue
+        direction = torch.randn(a.shape, generator=generator, dtype=torch.float64)
+        out[name] = (a.double() + direction * (scale * norm / float(direction.norm()))).to(a.dtype)
+        moved += 1
+    return out, moved
+
+
+@torch.no_grad()
+def action_change(base: torch.nn.Module, moved: torch.nn.Module, files: list, every: int = 8) -> float:
+    """RMS change of the mean action chunk (the policy's normalised units) from `base` to `moved` on
+    every `every`-th frame of the recorded episodes in `files`."""
+    from worldenv_core.models.text import InstructionEncoder
+
+    encoder, diffs = InstructionEncoder(), []
+    for file in files:
+        episode = read_episode(file, cameras=base.cameras)
+        frames = np.arange(0, len(episode.proprio), every)
+        images = {c: torch.as_tensor(episode.images[c][frames]).permute(0, 3, 1, 2) for c in base.cameras}
+        inputs = (images, torch.as_tensor(episode.proprio[frames]), encoder([episode.meta.instruction] * len(frames)))
+        diffs.append(moved(*inputs)[0] - base(*inputs)[0])
+    return float(torch.cat(diffs).pow(2).mean().sqrt())
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--policy", required=True, help="the policy to move (the SFT checkpoint folder)")
+    ap.add_argument("--like", required=True, help="a policy post-trained from it: the size of the move, per tensor")
+    ap.add_argument("--out", required=True, help="the checkpoint folder to write")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--scale", type=float, default=1.0,
+                    help="x the post-trained change's norm per tensor; a random direction moves the actions far less "
+                         "than a gradient's does at the same norm, so match their change in actions with this")
+    ap.add_argument("--frames", nargs="*", default=[],
+                    help="recorded episodes (files, folders or globs) to measure both changes of the mean action on")
+    args = ap.parse_args(argv)
+    with user_errors():
+        configs = [read_config(p) for p in (args.policy, args.like)]
+        for path, cfg in zip((args.policy, args.like), configs):
+            if cfg["meta"].get("kind") != "policy":
+                raise ConfigError(f"{path} holds a {cfg['meta'].get('kind')!r} checkpoint, not a policy")
+        if configs[0]["model"] != configs[1]["model"]:
+            raise ConfigError(f"{args.policy} and {args.like} are built from different model configs: "
+                              "--like must be post-trained from --policy")
+        files = expand_episode_paths(args.frames) if args.frames else []
+        state, moved = random_update(load_weights(Path(args.policy) / WEIGHTS),
+                                     load_weights(Path(args.like) / WEIGHTS), args.seed, args.scale)
+        meta = {**configs[0]["meta"], "random_update": {"from": portable(args.policy), "like": portable(args.like),
+                                                        "seed": args.seed, "scale": args.scale,
+                                                        "tensors_moved": moved}}
+        save_state(args.out, state, configs[0]["model"], meta)
+        print(f"{args.out}: {moved} tensors moved {args.scale:g} x as far as in {args.like}, in a random direction "
+              f"(seed {args.seed})")
+        if files:
+            base, like, out = (load_checkpoint(p, "policy")[0] for p in (args.policy, args.like, args.out))
+            print(f"RMS change of the mean action on every 8th frame of {len(files)} episodes (normalised units): "
+                  f"{action_change(base, like, files):.4f} post-trained, {action_change(base, out, files):.4f} this random update")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,92 @@
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from stages.post_train_loop.random_update import main, random_update
+from worldenv_core.errors import ConfigError
+from worldenv_core.models.checkpoint import load_model, save_state
+
+LINEAR = {"_target_": "torch.nn.Linear", "in_features": 3, "out_features": 2}
+
+
+def states():
+    base = {"weight": torch.randn(2, 3, generator=torch.Generator().manual_seed(1)), "bias": torch.zeros(2),
+            "count": torch.tensor([4])}
+    like = {"weight": base["weight"] + 0.01 * torch.randn(2, 3, generator=torch.Generator().manual_seed(2)),
+            "bias": base["bias"].clone(), "count": base["count"].clone()}
+    return base, like
+
+
+def test_each_tensor_moves_as_far_as_the_update_in_another_direction():
+    base, like = states()
+    out, moved = random_update(base, like, seed=0, scale=3.0)
+    assert moved == 1
+    step, update = out["weight"] - base["weight"], like["weight"] - base["weight"]
+    assert torch.allclose(step.norm(), 3.0 * update.norm(), rtol=1e-5)
+    assert torch.nn.functional.cosine_similarity(step.flatten(), update.flatten(), dim=0) < 0.99
+    assert torch.equal(out["bias"], base["bias"]) and torch.equal(out["count"], base["count"])  # unchanged stays so
+
+
+def test_the_seed_decides_the_direction():
+    base, like = states()
+    assert torch.equal(random_update(base, like, 0)[0]["weight"], random_update(base, like, 0)[0]["weight"])
+    assert not torch.equal(random_update(base, like, 0)[0]["weight"], random_update(base, like, 1)[0]["weight"])
+
+
+def test_policies_that_do_not_match_are_refused():
+    base, like = states()
+    with pytest.raises(ConfigError, match="different tensors"):
+        random_update(base, {"weight": like["weight"]}, 0)
+    with pytest.raises(ConfigError, match="shape"):
+        random_update(base, {**like, "bias": torch.zeros(3)}, 0)
+    with pytest.raises(ConfigError, match="scale"):
+        random_update(base, like, 0, scale=0.0)
+
+
+def test_cli_writes_a_checkpoint_that_loads_and_says_what_it_is(tmp_path, capsys):
+    torch.manual_seed(0)
+    sft = torch.nn.Linear(3, 2)
+    post = {k: v + 0.01 for k, v in sft.state_dict().items()}
+    save_state(tmp_path / "sft", sft.state_dict(), LINEAR, {"kind": "policy"})
+    save_state(tmp_path / "post", post, LINEAR, {"kind": "policy"})
+    main(["--policy", str(tmp_path / "sft"), "--like", str(tmp_path / "post"), "--out", str(tmp_path / "rand"),
+          "--seed", "3"])
+    model, cfg = load_model(tmp_path / "rand")
+    assert isinstance(model, torch.nn.Linear)
+    assert cfg["meta"]["random_update"]["seed"] == 3 and cfg["meta"]["random_update"]["tensors_moved"] == 2
+    for k, v in model.state_dict().items():
+        assert torch.allclose((v - sft.state_dict()[k]).norm(), (post[k] - sft.state_dict()[k]).norm(), rtol=1e-5)
+    assert not (tmp_path / "rand.tmp").exists()
+
+
+def test_cli_refuses_a_non_policy(tmp_path, capsys):
+    save_state(tmp_path / "sft", torch.nn.Linear(3, 2).state_dict(), LINEAR, {"kind": "reflector"})
+    save_state(tmp_path / "post", torch.nn.Linear(3, 2).state_dict(), LINEAR, {"kind": "policy"})
+    with pytest.raises(SystemExit) as exit_:
+        main(["--policy", str(tmp_path / "sft"), "--like", str(tmp_path / "post"), "--out", str(tmp_path / "rand")])
+    assert exit_.value.code == 2 and "not a policy" in capsys.readouterr().err
+    assert not (tmp_path / "rand").exists()
+    json.loads((tmp_path / "sft" / "config.json").read_text())  # inputs untouched
+
+
+def test_action_change_is_zero_for_the_same_weights_and_grows_with_the_move(tmp_path):
+    from hydra.utils import instantiate
+
+    from tests.conftest import synthetic_episode
+    from tests.worldenv_core.models.test_policy import small_config
+    from stages.post_train_loop.random_update import action_change
+    from worldenv_core.data.mcap_io import write_episode
+
+    write_episode(tmp_path / "ep.mcap", synthetic_episode(np.random.default_rng(0), size=32, length=16))
+    torch.manual_seed(0)
+    base = instantiate(small_config()).eval()
+    like = {k: v + 1e-3 * torch.randn_like(v) if v.is_floating_point() else v for k, v in base.state_dict().items()}
+    changes = []
+    for scale in (1.0, 10.0):
+        moved = instantiate(small_config()).eval()
+        moved.load_state_dict(random_update(base.state_dict(), like, seed=0, scale=scale)[0])
+        changes.append(action_change(base, moved, [tmp_path / "ep.mcap"], every=4))
+    assert action_change(base, base, [tmp_path / "ep.mcap"]) == 0.0
+    assert 0.0 < changes[0] < changes[1]
