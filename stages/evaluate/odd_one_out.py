@@ -49,13 +49,13 @@ def odd_one_out(first: dict, others: list[dict]) -> dict:
     dist = poisson_binomial(chance)
     observed = int(outcomes[:, 0].sum())
     lower, upper = float(dist[:observed + 1].sum()), float(dist[observed:].sum())
-    only_fails = [int(((outcomes[:, j] == 0) & (outcomes.sum(1) == len(outcomes[0]) - 1)).sum())
-                  for j in range(outcomes.shape[1])]
-    only_succeeds = [int(((outcomes[:, j] == 1) & (outcomes.sum(1) == 1)).sum()) for j in range(outcomes.shape[1])]
+    solved, policies = outcomes.sum(axis=1), outcomes.shape[1]
+    alone_fails = ((outcomes == 0) & (solved == policies - 1)[:, None]).sum(axis=0)
+    alone_succeeds = ((outcomes == 1) & (solved == 1)[:, None]).sum(axis=0)
     return {"episodes": len(keys), "success": outcomes.mean(axis=0).tolist(), "first_successes": observed,
             "expected": float(chance.sum()), "p_lower": min(1.0, lower), "p_upper": min(1.0, upper),
-            "p_value": min(1.0, 2 * min(lower, upper)), "alone_fails": only_fails, "alone_succeeds": only_succeeds,
-            "episodes_that_differ": int(((outcomes.sum(1) > 0) & (outcomes.sum(1) < outcomes.shape[1])).sum())}
+            "p_value": min(1.0, 2 * min(lower, upper)), "alone_fails": alone_fails.tolist(),
+            "alone_succeeds": alone_succeeds.tolist(), "episodes_that_differ": int(((solved > 0) & (solved < policies)).sum())}
 
 
 def markdown(result: dict, names: list[str]) -> str:

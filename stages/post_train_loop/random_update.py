@@ -23,9 +23,9 @@ import numpy as np
 import torch
 
 from stages.evaluate.keep import portable
+from worldenv_core.cli import user_errors
 from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.data.selection import expand_episode_paths
-from worldenv_core.cli import user_errors
 from worldenv_core.errors import ConfigError
 from worldenv_core.models.checkpoint import WEIGHTS, load_checkpoint, load_weights, read_config, save_state
 
@@ -55,19 +55,21 @@ def random_update(base: dict[str, torch.Tensor], like: dict[str, torch.Tensor], 
 
 
 @torch.no_grad()
-def action_change(base: torch.nn.Module, moved: torch.nn.Module, files: list, every: int = 8) -> float:
-    """RMS change of the mean action chunk (the policy's normalised units) from `base` to `moved` on
-    every `every`-th frame of the recorded episodes in `files`."""
+def action_changes(base: torch.nn.Module, moved: list[torch.nn.Module], files: list, every: int = 8) -> list[float]:
+    """RMS change of the mean action chunk (the policy's normalised units) from `base` to each of `moved`
+    on every `every`-th frame of the recorded episodes in `files` (each episode read and encoded once)."""
     from worldenv_core.models.text import InstructionEncoder
 
-    encoder, diffs = InstructionEncoder(), []
+    encoder, diffs = InstructionEncoder(), [[] for _ in moved]
     for file in files:
         episode = read_episode(file, cameras=base.cameras)
         frames = np.arange(0, len(episode.proprio), every)
-        images = {c: torch.as_tensor(episode.images[c][frames]).permute(0, 3, 1, 2) for c in base.cameras}
+        images = {c: episode.video(c)[frames] for c in base.cameras}
         inputs = (images, torch.as_tensor(episode.proprio[frames]), encoder([episode.meta.instruction] * len(frames)))
-        diffs.append(moved(*inputs)[0] - base(*inputs)[0])
-    return float(torch.cat(diffs).pow(2).mean().sqrt())
+        start = base(*inputs)[0]
+        for out, model in zip(diffs, moved):
+            out.append(model(*inputs)[0] - start)
+    return [float(torch.cat(d).pow(2).mean().sqrt()) for d in diffs]
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -102,8 +104,9 @@ def main(argv: list[str] | None = None) -> None:
               f"(seed {args.seed})")
         if files:
             base, like, out = (load_checkpoint(p, "policy")[0] for p in (args.policy, args.like, args.out))
+            post_trained, this = action_changes(base, [like, out], files)
             print(f"RMS change of the mean action on every 8th frame of {len(files)} episodes (normalised units): "
-                  f"{action_change(base, like, files):.4f} post-trained, {action_change(base, out, files):.4f} this random update")
+                  f"{post_trained:.4f} post-trained, {this:.4f} this random update")
 
 
 if __name__ == "__main__":

@@ -76,17 +76,17 @@ def test_action_change_is_zero_for_the_same_weights_and_grows_with_the_move(tmp_
 
     from tests.conftest import synthetic_episode
     from tests.worldenv_core.models.test_policy import small_config
-    from stages.post_train_loop.random_update import action_change
+    from stages.post_train_loop.random_update import action_changes
     from worldenv_core.data.mcap_io import write_episode
 
     write_episode(tmp_path / "ep.mcap", synthetic_episode(np.random.default_rng(0), size=32, length=16))
     torch.manual_seed(0)
     base = instantiate(small_config()).eval()
     like = {k: v + 1e-3 * torch.randn_like(v) if v.is_floating_point() else v for k, v in base.state_dict().items()}
-    changes = []
+    moved = []
     for scale in (1.0, 10.0):
-        moved = instantiate(small_config()).eval()
-        moved.load_state_dict(random_update(base.state_dict(), like, seed=0, scale=scale)[0])
-        changes.append(action_change(base, moved, [tmp_path / "ep.mcap"], every=4))
-    assert action_change(base, base, [tmp_path / "ep.mcap"]) == 0.0
+        moved.append(instantiate(small_config()).eval())
+        moved[-1].load_state_dict(random_update(base.state_dict(), like, seed=0, scale=scale)[0])
+    changes = action_changes(base, moved, [tmp_path / "ep.mcap"], every=4)
+    assert action_changes(base, [base], [tmp_path / "ep.mcap"]) == [0.0]
     assert 0.0 < changes[0] < changes[1]
