@@ -19,7 +19,7 @@ import json
 
 import numpy as np
 
-from stages.evaluate.paired import pooled_episodes
+from stages.evaluate.paired import pooled_policies
 from worldenv_core.cli import user_errors
 from worldenv_core.errors import ConfigError
 from worldenv_core.files import write_text_atomic
@@ -78,11 +78,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--json", help="also write the result here")
     args = p.parse_args(argv)
     manifest = None if args.experiment_dir == "-" else Manifest(args.experiment_dir)
-    sides = [pooled_episodes(manifest, names) for names in (args.first, *args.other)]
-    for what in ("termination", "suite"):
-        if len({setting[what] for _, setting in sides}) > 1:
-            raise ConfigError(f"the policies ran different {what}s ({sorted({s[what] for _, s in sides})}): "
-                              "not the same episodes")
+    sides = pooled_policies(manifest, [args.first, *args.other])
     result = odd_one_out(sides[0][0], [episodes for episodes, _ in sides[1:]])
     names = [setting["policy"] for _, setting in sides]
     result.update(policies=names, records=[args.first, *args.other], termination=sides[0][1]["termination"],

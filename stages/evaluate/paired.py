@@ -76,6 +76,17 @@ def pooled_episodes(manifest: Manifest | None, names: list[str]) -> tuple[dict[t
     return episodes, {**seen, "policy": checkpoint_name(first["policy"])}
 
 
+def pooled_policies(manifest: Manifest | None, groups: list[list[str]]) -> list[tuple[dict, dict]]:
+    """`pooled_episodes` of each group of evaluations (one policy each), refused unless all ran the
+    same termination on the same suite (else they are not the same episodes)."""
+    sides = [pooled_episodes(manifest, names) for names in groups]
+    for what in ("termination", "suite"):
+        if len({setting[what] for _, setting in sides}) > 1:
+            raise ConfigError(f"the policies ran different {what}s ({sorted({s[what] for _, s in sides})}): "
+                              "not the same episodes")
+    return sides
+
+
 def compare(a: dict, b: dict) -> dict:
     """The paired test over the episodes both ran, with each side's success on exactly those."""
     keys = sorted(set(a) & set(b))

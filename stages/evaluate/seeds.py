@@ -24,7 +24,7 @@ import math
 
 import numpy as np
 
-from stages.evaluate.paired import pooled_episodes
+from stages.evaluate.paired import pooled_policies
 from worldenv_core.cli import user_errors
 from worldenv_core.errors import ConfigError
 from worldenv_core.files import write_text_atomic
@@ -126,17 +126,13 @@ def main(argv: list[str] | None = None) -> dict:
     manifest = None if args.experiment_dir == "-" else Manifest(args.experiment_dir)
     if any(len(entry) < 2 for entry in args.policy):
         raise ConfigError("each --policy is a procedure's name followed by at least one evaluation")
-    sides = [pooled_episodes(manifest, names) for names in ([args.start] if args.start else []) + [e[1:] for e in args.policy]]
-    for what in ("termination", "suite"):
-        if len({setting[what] for _, setting in sides}) > 1:
-            raise ConfigError(f"the policies ran different {what}s ({sorted({s[what] for _, s in sides})}): "
-                              "not the same episodes")
+    sides = pooled_policies(manifest, ([args.start] if args.start else []) + [e[1:] for e in args.policy])
     start = sides.pop(0)[0] if args.start else None
     policies: dict[str, list[dict]] = {}
     for entry, (episodes, _) in zip(args.policy, sides):
         policies.setdefault(entry[0], []).append(episodes)
     result = compare_procedures(policies, start)
-    result.update(records={"start": args.start, "policies": [e for e in args.policy]},
+    result.update(records={"start": args.start, "policies": args.policy},
                   termination=sides[0][1]["termination"], suite=sides[0][1]["suite"])
     print(markdown(result), end="")
     if args.json:
