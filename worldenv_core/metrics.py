@@ -124,3 +124,15 @@ def paired_success_test(a: dict, b: dict) -> dict:
     n, k = only_a + only_b, min(only_a, only_b)
     p = min(1.0, 2 * sum(math.comb(n, i) for i in range(k + 1)) / 2 ** n) if n else 1.0
     return {"episodes": len(keys), "only_a": only_a, "only_b": only_b, "p_value": p}
+
+
+def paired_difference_ci(only_a: int, only_b: int, n: int, level: float = 0.95) -> list[float]:
+    """[low, high] interval of the success difference b - a on n paired episodes, from the
+    discordant counts (the Wald interval for paired proportions, without continuity correction;
+    the exact test is `paired_success_test`). Episodes both solve or both fail narrow it through n."""
+    if n <= 0:
+        raise ValueError("a paired difference needs at least one episode")
+    z = {0.9: 1.6449, 0.95: 1.9600, 0.99: 2.5758}[level]
+    diff = (only_b - only_a) / n
+    se = math.sqrt(max(0.0, (only_a + only_b) / n - diff ** 2) / n)
+    return [diff - z * se, diff + z * se]

@@ -3,7 +3,7 @@ import math
 
 import pytest
 
-from worldenv_core.metrics import paired_success_test, spearman
+from worldenv_core.metrics import paired_difference_ci, paired_success_test, spearman
 
 
 def test_paired_success_test_by_hand():
@@ -42,3 +42,14 @@ def test_spearman_counts_rates_that_differ_by_rounding_as_ties():
     assert 0.1 + 0.2 != 0.3  # the same rate, summed in another order
     assert spearman([0.1 + 0.2, 0.3, 0.5], [1, 2, 3]) == spearman([0.3, 0.3, 0.5], [1, 2, 3])
     assert spearman([0.3, 0.3, 0.5], [1, 2, 3]) == pytest.approx(0.866, abs=1e-3)
+
+
+def test_paired_difference_ci_by_hand():
+    # 10 only-a, 30 only-b of 200: diff 0.1, se = sqrt((40/200 - 0.01) / 200) = sqrt(0.00095)
+    low, high = paired_difference_ci(10, 30, 200)
+    half = 1.96 * math.sqrt(0.00095)
+    assert (low, high) == pytest.approx((0.1 - half, 0.1 + half))
+    assert paired_difference_ci(0, 0, 50) == [0.0, 0.0]  # no discordant episode: no spread
+    assert paired_difference_ci(5, 5, 100, level=0.99)[1] > paired_difference_ci(5, 5, 100)[1]
+    with pytest.raises(ValueError, match="at least one episode"):
+        paired_difference_ci(0, 0, 0)
