@@ -17,14 +17,12 @@ by side, filled where McNemar p < 0.05.
 from __future__ import annotations
 
 import argparse
-import json
 
 import numpy as np
 
-from stages.evaluate.paired import pooled_policies
+from stages.evaluate.paired import emit, pooled_policies
 from worldenv_core.cli import user_errors
 from worldenv_core.errors import ConfigError
-from worldenv_core.files import write_text_atomic
 from worldenv_core.manifest import Manifest
 from worldenv_core.metrics import paired_difference_ci, paired_success_test
 from worldenv_core.report import markdown_table
@@ -107,12 +105,7 @@ def main(argv: list[str] | None = None) -> dict:
     result = gains_by_budget(sides[0][0], [(e[0], int(e[1]), s[0]) for e, s in zip(args.policy, sides[1:])])
     result.update(records={"start": args.start, "policies": args.policy},
                   termination=sides[0][1]["termination"], suite=sides[0][1]["suite"])
-    print(markdown(result), end="")
-    if args.json:
-        write_text_atomic(args.json, json.dumps(result, indent=1))
-    if args.plot:
-        plot(result, args.plot)
-    return result
+    return emit(result, markdown(result), args.json, plot, args.plot)
 
 
 if __name__ == "__main__":

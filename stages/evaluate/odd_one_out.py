@@ -15,14 +15,12 @@ Each side pools evaluations as `paired` does (record ids or kept folders).
 from __future__ import annotations
 
 import argparse
-import json
 
 import numpy as np
 
-from stages.evaluate.paired import pooled_policies
+from stages.evaluate.paired import emit, pooled_policies
 from worldenv_core.cli import user_errors
 from worldenv_core.errors import ConfigError
-from worldenv_core.files import write_text_atomic
 from worldenv_core.manifest import Manifest
 from worldenv_core.report import markdown_table
 
@@ -83,10 +81,7 @@ def main(argv: list[str] | None = None) -> dict:
     names = [setting["policy"] for _, setting in sides]
     result.update(policies=names, records=[args.first, *args.other], termination=sides[0][1]["termination"],
                   suite=sides[0][1]["suite"])
-    print(markdown(result, names), end="")
-    if args.json:
-        write_text_atomic(args.json, json.dumps(result, indent=1))
-    return result
+    return emit(result, markdown(result, names), args.json)
 
 
 if __name__ == "__main__":

@@ -87,6 +87,17 @@ def pooled_policies(manifest: Manifest | None, groups: list[list[str]]) -> list[
     return sides
 
 
+def emit(result: dict, table: str, json_path: str | None = None, draw=None, plot_path: str | None = None) -> dict:
+    """The end every comparison command shares: print its table, write its result as JSON and
+    draw its figure where asked (`draw(result, path)`). -> the result."""
+    print(table, end="")
+    if json_path:
+        write_text_atomic(json_path, json.dumps(result, indent=1))
+    if plot_path and draw is not None:
+        draw(result, plot_path)
+    return result
+
+
 def compare(a: dict, b: dict) -> dict:
     """The paired test over the episodes both ran, with each side's success on exactly those."""
     keys = sorted(set(a) & set(b))
@@ -126,10 +137,7 @@ def main(argv: list[str] | None = None) -> dict:
     result = compare(a, b)
     result.update(a_records=args.a, b_records=args.b, a_policy=a_setting["policy"], b_policy=b_setting["policy"],
                   termination=a_setting["termination"], suite=a_setting["suite"])
-    print(markdown(result, a_setting["policy"], b_setting["policy"]), end="")
-    if args.json:
-        write_text_atomic(args.json, json.dumps(result, indent=1))
-    return result
+    return emit(result, markdown(result, a_setting["policy"], b_setting["policy"]), args.json)
 
 
 if __name__ == "__main__":

@@ -19,15 +19,13 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 import math
 
 import numpy as np
 
-from stages.evaluate.paired import pooled_policies
+from stages.evaluate.paired import emit, pooled_policies
 from worldenv_core.cli import user_errors
 from worldenv_core.errors import ConfigError
-from worldenv_core.files import write_text_atomic
 from worldenv_core.manifest import Manifest
 from worldenv_core.metrics import paired_success_test
 from worldenv_core.report import markdown_table
@@ -134,12 +132,7 @@ def main(argv: list[str] | None = None) -> dict:
     result = compare_procedures(policies, start)
     result.update(records={"start": args.start, "policies": args.policy},
                   termination=sides[0][1]["termination"], suite=sides[0][1]["suite"])
-    print(markdown(result), end="")
-    if args.json:
-        write_text_atomic(args.json, json.dumps(result, indent=1))
-    if args.plot:
-        plot(result, args.plot)
-    return result
+    return emit(result, markdown(result), args.json, plot, args.plot)
 
 
 if __name__ == "__main__":
