@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from stages.post_train_loop.random_update import main, random_update
+from stages.post_train_loop.random_update import main, mirror_update, random_update
 from worldenv_core.errors import ConfigError
 from worldenv_core.models.checkpoint import load_model, save_state
 
@@ -90,3 +90,30 @@ def test_action_change_is_zero_for_the_same_weights_and_grows_with_the_move(tmp_
     changes = action_changes(base, moved, [tmp_path / "ep.mcap"], every=4)
     assert action_changes(base, [base], [tmp_path / "ep.mcap"]) == [0.0]
     assert 0.0 < changes[0] < changes[1]
+
+
+def test_the_mirror_moves_by_minus_the_update_and_leaves_the_rest():
+    base, like = states()
+    out, moved = mirror_update(base, like)
+    assert moved == 1
+    assert torch.allclose(out["weight"] - base["weight"], -(like["weight"] - base["weight"]), atol=1e-6)
+    assert torch.equal(out["bias"], base["bias"]) and torch.equal(out["count"], base["count"])
+    half, _ = mirror_update(base, like, scale=0.5)
+    assert torch.allclose(half["weight"] - base["weight"], -0.5 * (like["weight"] - base["weight"]), atol=1e-6)
+    with pytest.raises(ConfigError, match="different tensors"):
+        mirror_update(base, {"weight": like["weight"]})
+
+
+def test_cli_mirror_records_its_direction(tmp_path, capsys):
+    torch.manual_seed(0)
+    sft = torch.nn.Linear(3, 2)
+    post = {k: v + 0.01 for k, v in sft.state_dict().items()}
+    save_state(tmp_path / "sft", sft.state_dict(), LINEAR, {"kind": "policy"})
+    save_state(tmp_path / "post", post, LINEAR, {"kind": "policy"})
+    main(["--policy", str(tmp_path / "sft"), "--like", str(tmp_path / "post"), "--out", str(tmp_path / "mirror"),
+          "--mirror"])
+    model, cfg = load_model(tmp_path / "mirror")
+    assert cfg["meta"]["random_update"]["direction"] == "mirror" and cfg["meta"]["random_update"]["seed"] is None
+    for k, v in model.state_dict().items():
+        assert torch.allclose(v, sft.state_dict()[k] - 0.01, atol=1e-6)
+    assert "reverse of its update" in capsys.readouterr().out
