@@ -1,0 +1,130 @@
+"""Does an update gain by its direction or by its size? A move and its mirror against their start.
+
+A policy moved off its start by an update d, and the start moved by -d (`python -m
+stages.post_train_loop.random_update --mirror`), evaluated on the same episodes as the start. Near
+the start the success of a move is f(d) ~ f(0) + g.d + d'Hd/2: the first-order part flips sign with
+the move, the second-order part does not. So half the difference of the two gains estimates what the
+update's direction adds (the part a reward can point; a random direction's is zero on average), and
+half their sum what a move of that size does wherever it points (a start that sits low in its
+neighbourhood gains both ways). Per move: each side's paired gain over the start (95 % interval,
+McNemar p), the direction part (exact McNemar of the move against its mirror) and the size part
+(exact test that the start is the odd one out among the three, `odd_one_out`).
+
+    python -m stages.evaluate.mirror - --start results/s/evaluate-{A,B} \\
+        --move "LOOP, real simulator" results/s/evaluate-C --mirror results/s/evaluate-D \\
+        --move "random move" results/s/evaluate-E --mirror results/s/evaluate-F [--json F] [--plot F.png]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+import numpy as np
+
+from stages.evaluate.odd_one_out import odd_one_out
+from stages.evaluate.paired import emit, pooled_policies
+from worldenv_core.cli import user_errors
+from worldenv_core.errors import ConfigError
+from worldenv_core.manifest import Manifest
+from worldenv_core.metrics import paired_difference_ci, paired_success_test
+from worldenv_core.report import markdown_table
+
+
+def _gain(base: dict, other: dict, keys: list) -> dict:
+    test = paired_success_test({k: base[k] for k in keys}, {k: other[k] for k in keys})
+    return {"gain": (test["only_b"] - test["only_a"]) / len(keys),
+            "ci": paired_difference_ci(test["only_a"], test["only_b"], len(keys)),
+            "only_first": test["only_a"], "only_second": test["only_b"], "p_value": test["p_value"]}
+
+
+def direction_and_size(start: dict, moves: list[tuple[str, dict, dict]]) -> dict:
+    """`start`: {(task, init state): success}; `moves`: (label, the moved policy's, its mirror's) each."""
+    if not moves:
+        raise ConfigError("give at least one --move with its --mirror")
+    keys = sorted(set(start).intersection(*(set(m[1]) & set(m[2]) for m in moves)))
+    if not keys:
+        raise ConfigError("the moves, their mirrors and the start share no episode (task, init state)")
+    rows = []
+    for label, plus, minus in moves:
+        between = _gain(minus, plus, keys)  # the move against its mirror: 2 x the direction part
+        x0, xp, xm = (np.array([side[k] for k in keys], dtype=float) for side in (start, plus, minus))
+        even = (xp + xm) / 2 - x0  # per episode: the size part's estimate
+        half = 1.96 * float(even.std(ddof=1)) / math.sqrt(len(keys)) if len(keys) > 1 else float("nan")
+        rows.append({"label": label, "move": _gain(start, plus, keys), "mirror": _gain(start, minus, keys),
+                     "direction": between["gain"] / 2, "direction_ci": [v / 2 for v in between["ci"]],
+                     "only_mirror": between["only_first"], "only_move": between["only_second"],
+                     "direction_p": between["p_value"], "size": float(even.mean()),
+                     "size_ci": [float(even.mean()) - half, float(even.mean()) + half],
+                     "size_p": odd_one_out({k: start[k] for k in keys}, [plus, minus])["p_value"]})
+    return {"episodes": len(keys), "start": float(np.mean([start[k] for k in keys])), "moves": rows}
+
+
+def _points(value: float, ci: list[float]) -> str:
+    return f"{100 * value:+.1f} [{100 * ci[0]:+.1f}, {100 * ci[1]:+.1f}]"
+
+
+def markdown(result: dict) -> str:
+    rows = [[r["label"], f"{_points(r['move']['gain'], r['move']['ci'])}, p {r['move']['p_value']:.3g}",
+             f"{_points(r['mirror']['gain'], r['mirror']['ci'])}, p {r['mirror']['p_value']:.3g}",
+             f"{_points(r['direction'], r['direction_ci'])}", f"{r['only_mirror']} / {r['only_move']}, p {r['direction_p']:.3g}",
+             f"{_points(r['size'], r['size_ci'])}, p {r['size_p']:.3g}"] for r in result["moves"]]
+    head = ["move", "its gain over the start (points, 95 %)", "its mirror's gain", "direction part (gain - mirror's) / 2",
+            "only the mirror / only the move", "size part (gain + mirror's) / 2"]
+    return "\n".join([*markdown_table(head, rows), "",
+                      f"over {result['episodes']} episodes every policy ran; the start solves {100 * result['start']:.1f} %; "
+                      "p: exact McNemar (gains, direction), exact odd-one-out test of the start among the three (size)"]) + "\n"
+
+
+def plot(result: dict, path: str) -> None:
+    from worldenv_core.viz import figure, save_figure
+
+    rows = result["moves"]
+    fig, ax = figure(figsize=(1.6 + 1.5 * len(rows), 3.6))
+    for i, r in enumerate(rows):
+        for dx, side, marker, name in ((-0.15, r["move"], "o", "the move"), (0.15, r["mirror"], "v", "its mirror")):
+            y, (lo, hi) = 100 * side["gain"], (100 * side["ci"][0], 100 * side["ci"][1])
+            ax.errorbar(i + dx, y, yerr=[[y - lo], [hi - y]], fmt=marker, color="C0" if dx < 0 else "C1", ms=6,
+                        capsize=2, lw=0.8, mfc=("C0" if dx < 0 else "C1") if side["p_value"] < 0.05 else "white",
+                        label=name if i == 0 else None)
+        ax.plot([i - 0.15, i + 0.15], [100 * r["move"]["gain"], 100 * r["mirror"]["gain"]], "-", color="grey", lw=0.8)
+        ax.plot([i], [100 * r["size"]], "_", color="k", ms=14, mew=1.5, label="size part (mean of the two)" if i == 0 else None)
+    ax.axhline(0, color="grey", lw=0.8, ls="--")
+    ax.set_xticks(range(len(rows)), [r["label"] for r in rows], fontsize=7)
+    ax.set(ylabel="real success - start (points)", xlim=(-0.6, len(rows) - 0.4))
+    ax.set_title(f"{result['episodes']} benchmark episodes; the start solves {100 * result['start']:.1f} %\n"
+                 "(95 % paired intervals; filled: McNemar p < 0.05 against the start)", fontsize=9)
+    ax.legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("experiment_dir", help="where record ids are looked up ('-': only output folders are named)")
+    p.add_argument("--start", nargs="+", required=True, help="evaluations of the policy both sides moved from (pooled)")
+    p.add_argument("--move", nargs="+", action="append", required=True, metavar="LABEL EVALUATION",
+                   help="a label, then the moved policy's evaluations (pooled); repeat per move")
+    p.add_argument("--mirror", nargs="+", action="append", required=True, metavar="EVALUATION",
+                   help="the mirrored policy's evaluations (pooled), one --mirror per --move, in order")
+    p.add_argument("--json", help="also write the result here")
+    p.add_argument("--plot", help="also draw each move's and its mirror's gain here (.png)")
+    args = p.parse_args(argv)
+    if len(args.move) != len(args.mirror):
+        raise ConfigError(f"{len(args.move)} --move but {len(args.mirror)} --mirror: give one mirror per move")
+    for entry in args.move:
+        if len(entry) < 2:
+            raise ConfigError(f"--move {' '.join(entry)}: give a label, then at least one evaluation")
+    manifest = None if args.experiment_dir == "-" else Manifest(args.experiment_dir)
+    sides = pooled_policies(manifest, [args.start] + [e[1:] for e in args.move] + args.mirror)
+    n = len(args.move)
+    result = direction_and_size(sides[0][0], [(e[0], sides[1 + i][0], sides[1 + n + i][0])
+                                              for i, e in enumerate(args.move)])
+    result.update(records={"start": args.start, "moves": args.move, "mirrors": args.mirror},
+                  termination=sides[0][1]["termination"], suite=sides[0][1]["suite"])
+    return emit(result, markdown(result), args.json, plot, args.plot)
+
+
+if __name__ == "__main__":
+    with user_errors():
+        main()
