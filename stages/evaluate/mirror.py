@@ -80,7 +80,7 @@ def plot(result: dict, path: str) -> None:
     from worldenv_core.viz import figure, save_figure
 
     rows = result["moves"]
-    fig, ax = figure(figsize=(1.6 + 1.5 * len(rows), 3.6))
+    fig, ax = figure(figsize=(max(4.8, 1.6 + 1.6 * len(rows)), 3.8))
     for i, r in enumerate(rows):
         for dx, side, marker, name in ((-0.15, r["move"], "o", "the move"), (0.15, r["mirror"], "v", "its mirror")):
             y, (lo, hi) = 100 * side["gain"], (100 * side["ci"][0], 100 * side["ci"][1])
@@ -92,9 +92,9 @@ def plot(result: dict, path: str) -> None:
     ax.axhline(0, color="grey", lw=0.8, ls="--")
     ax.set_xticks(range(len(rows)), [r["label"] for r in rows], fontsize=7)
     ax.set(ylabel="real success - start (points)", xlim=(-0.6, len(rows) - 0.4))
-    ax.set_title(f"{result['episodes']} benchmark episodes; the start solves {100 * result['start']:.1f} %\n"
-                 "(95 % paired intervals; filled: McNemar p < 0.05 against the start)", fontsize=9)
-    ax.legend(fontsize=7, loc="best")
+    ax.set_title(f"the start solves {100 * result['start']:.1f} % of {result['episodes']} episodes\n"
+                 "95 % paired intervals; filled: McNemar p < 0.05 against it", fontsize=8)
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=3, frameon=False)
     fig.tight_layout()
     save_figure(fig, path)
 
