@@ -20,11 +20,10 @@ import argparse
 
 import numpy as np
 
-from stages.evaluate.paired import emit, pooled_policies
+from stages.evaluate.paired import emit, paired_gain, pooled_policies
 from worldenv_core.cli import user_errors
 from worldenv_core.errors import ConfigError
 from worldenv_core.manifest import Manifest
-from worldenv_core.metrics import paired_difference_ci, paired_success_test
 from worldenv_core.report import markdown_table
 
 
@@ -40,11 +39,10 @@ def gains_by_budget(start: dict, policies: list[tuple[str, int, dict]]) -> dict:
     base = {k: start[k] for k in keys}
     rows = []
     for route, cost, episodes in policies:
-        test = paired_success_test(base, {k: episodes[k] for k in keys})
+        g = paired_gain(base, episodes, keys)
         rows.append({"route": route, "real_episodes": int(cost), "success": float(np.mean([episodes[k] for k in keys])),
-                     "gain": (test["only_b"] - test["only_a"]) / len(keys),
-                     "gain_ci": paired_difference_ci(test["only_a"], test["only_b"], len(keys)),
-                     "only_start": test["only_a"], "only_it": test["only_b"], "p_value": test["p_value"]})
+                     "gain": g["gain"], "gain_ci": g["ci"], "only_start": g["only_first"], "only_it": g["only_second"],
+                     "p_value": g["p_value"]})
     return {"episodes": len(keys), "start": float(np.mean(list(base.values()))), "policies": rows}
 
 

@@ -23,19 +23,11 @@ import math
 import numpy as np
 
 from stages.evaluate.odd_one_out import odd_one_out
-from stages.evaluate.paired import emit, pooled_policies
+from stages.evaluate.paired import emit, paired_gain, pooled_policies
 from worldenv_core.cli import user_errors
 from worldenv_core.errors import ConfigError
 from worldenv_core.manifest import Manifest
-from worldenv_core.metrics import paired_difference_ci, paired_success_test
 from worldenv_core.report import markdown_table
-
-
-def _gain(base: dict, other: dict, keys: list) -> dict:
-    test = paired_success_test({k: base[k] for k in keys}, {k: other[k] for k in keys})
-    return {"gain": (test["only_b"] - test["only_a"]) / len(keys),
-            "ci": paired_difference_ci(test["only_a"], test["only_b"], len(keys)),
-            "only_first": test["only_a"], "only_second": test["only_b"], "p_value": test["p_value"]}
 
 
 def direction_and_size(start: dict, moves: list[tuple[str, dict, dict]]) -> dict:
@@ -47,11 +39,11 @@ def direction_and_size(start: dict, moves: list[tuple[str, dict, dict]]) -> dict
         raise ConfigError("the moves, their mirrors and the start share no episode (task, init state)")
     rows = []
     for label, plus, minus in moves:
-        between = _gain(minus, plus, keys)  # the move against its mirror: 2 x the direction part
+        between = paired_gain(minus, plus, keys)  # the move against its mirror: 2 x the direction part
         x0, xp, xm = (np.array([side[k] for k in keys], dtype=float) for side in (start, plus, minus))
         even = (xp + xm) / 2 - x0  # per episode: the size part's estimate
         half = 1.96 * float(even.std(ddof=1)) / math.sqrt(len(keys)) if len(keys) > 1 else float("nan")
-        rows.append({"label": label, "move": _gain(start, plus, keys), "mirror": _gain(start, minus, keys),
+        rows.append({"label": label, "move": paired_gain(start, plus, keys), "mirror": paired_gain(start, minus, keys),
                      "direction": between["gain"] / 2, "direction_ci": [v / 2 for v in between["ci"]],
                      "only_mirror": between["only_first"], "only_move": between["only_second"],
                      "direction_p": between["p_value"], "size": float(even.mean()),

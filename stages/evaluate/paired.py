@@ -22,7 +22,7 @@ from stages.evaluate.evaluation import checkpoint_name
 from worldenv_core.errors import ConfigError
 from worldenv_core.files import write_text_atomic
 from worldenv_core.manifest import Manifest
-from worldenv_core.metrics import paired_success_test
+from worldenv_core.metrics import paired_difference_ci, paired_success_test
 from worldenv_core.report import ReportContext, markdown_table
 
 
@@ -96,6 +96,15 @@ def emit(result: dict, table: str, json_path: str | None = None, draw=None, plot
     if plot_path and draw is not None:
         draw(result, plot_path)
     return result
+
+
+def paired_gain(base: dict, other: dict, keys: list) -> dict:
+    """`other`'s success minus `base`'s on `keys`, with its 95 % paired interval, the discordant counts and
+    the exact McNemar p."""
+    test = paired_success_test({k: base[k] for k in keys}, {k: other[k] for k in keys})
+    return {"gain": (test["only_b"] - test["only_a"]) / len(keys),
+            "ci": paired_difference_ci(test["only_a"], test["only_b"], len(keys)),
+            "only_first": test["only_a"], "only_second": test["only_b"], "p_value": test["p_value"]}
 
 
 def compare(a: dict, b: dict) -> dict:

@@ -45,12 +45,18 @@ def test_policies_that_do_not_match_are_refused():
         random_update(base, like, 0, scale=0.0)
 
 
-def test_cli_writes_a_checkpoint_that_loads_and_says_what_it_is(tmp_path, capsys):
+def sft_and_post(tmp_path):
+    """A policy checkpoint and one 'post-trained' from it (every tensor + 0.01) under tmp_path/sft, /post."""
     torch.manual_seed(0)
     sft = torch.nn.Linear(3, 2)
     post = {k: v + 0.01 for k, v in sft.state_dict().items()}
     save_state(tmp_path / "sft", sft.state_dict(), LINEAR, {"kind": "policy"})
     save_state(tmp_path / "post", post, LINEAR, {"kind": "policy"})
+    return sft, post
+
+
+def test_cli_writes_a_checkpoint_that_loads_and_says_what_it_is(tmp_path, capsys):
+    sft, post = sft_and_post(tmp_path)
     main(["--policy", str(tmp_path / "sft"), "--like", str(tmp_path / "post"), "--out", str(tmp_path / "rand"),
           "--seed", "3"])
     model, cfg = load_model(tmp_path / "rand")
@@ -105,11 +111,7 @@ def test_the_mirror_moves_by_minus_the_update_and_leaves_the_rest():
 
 
 def test_cli_mirror_records_its_direction(tmp_path, capsys):
-    torch.manual_seed(0)
-    sft = torch.nn.Linear(3, 2)
-    post = {k: v + 0.01 for k, v in sft.state_dict().items()}
-    save_state(tmp_path / "sft", sft.state_dict(), LINEAR, {"kind": "policy"})
-    save_state(tmp_path / "post", post, LINEAR, {"kind": "policy"})
+    sft, post = sft_and_post(tmp_path)
     main(["--policy", str(tmp_path / "sft"), "--like", str(tmp_path / "post"), "--out", str(tmp_path / "mirror"),
           "--mirror"])
     model, cfg = load_model(tmp_path / "mirror")
