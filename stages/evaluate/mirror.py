@@ -18,6 +18,7 @@ McNemar p), the direction part (exact McNemar of the move against its mirror) an
 from __future__ import annotations
 
 import argparse
+import textwrap
 import math
 
 import numpy as np
@@ -82,12 +83,13 @@ def plot(result: dict, path: str) -> None:
         ax.plot([i - 0.15, i + 0.15], [100 * r["move"]["gain"], 100 * r["mirror"]["gain"]], "-", color="grey", lw=0.8)
         ax.plot([i], [100 * r["size"]], "_", color="k", ms=14, mew=1.5, label="size part (mean of the two)" if i == 0 else None)
     ax.axhline(0, color="grey", lw=0.8, ls="--")
-    ax.set_xticks(range(len(rows)), [r["label"] for r in rows], fontsize=7)
+    # Wrapped: seven or more moves' labels would run into each other on one line.
+    ax.set_xticks(range(len(rows)), [textwrap.fill(r["label"], 22) for r in rows], fontsize=7)
     ax.set(ylabel="real success - start (points)", xlim=(-0.6, len(rows) - 0.4))
     ax.set_title(f"the start solves {100 * result['start']:.1f} % of {result['episodes']} episodes\n"
                  "95 % paired intervals; filled: McNemar p < 0.05 against it", fontsize=8)
-    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=3, frameon=False)
-    fig.tight_layout()
+    fig.legend(fontsize=7, loc="lower center", ncol=3, frameon=False)
+    fig.tight_layout(rect=(0, 0.06, 1, 1))
     save_figure(fig, path)
 
 
