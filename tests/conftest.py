@@ -4,6 +4,14 @@ import os
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
+# Each pytest-xdist worker takes its share of the cores (unless OMP_NUM_THREADS says otherwise):
+# torch's default, a thread per core in every worker, puts two workers' threads on each core.
+_XDIST_WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+if _XDIST_WORKERS > 1 and "OMP_NUM_THREADS" not in os.environ:
+    from worldenv_core.parallel import default_workers, limit_threads
+
+    limit_threads(max(1, default_workers() // _XDIST_WORKERS))
+
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 

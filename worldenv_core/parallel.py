@@ -37,17 +37,22 @@ def _die_with_parent(parent_pid: int | None) -> None:
         os._exit(1)
 
 
-def _init_worker(parent_pid: int | None = None) -> None:
-    _die_with_parent(parent_pid)
-    # Episodes are the unit of parallelism; nested BLAS/torch threads would only fight over cores.
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-    os.environ.setdefault("MKL_NUM_THREADS", "1")
+def limit_threads(threads: int) -> None:
+    """Cap this process's OpenMP / MKL / torch threads (the variables for libraries not yet loaded)."""
+    os.environ.setdefault("OMP_NUM_THREADS", str(threads))
+    os.environ.setdefault("MKL_NUM_THREADS", str(threads))
     try:
         import torch
 
-        torch.set_num_threads(1)
+        torch.set_num_threads(threads)
     except ImportError:
         pass
+
+
+def _init_worker(parent_pid: int | None = None) -> None:
+    _die_with_parent(parent_pid)
+    # Episodes are the unit of parallelism; nested BLAS/torch threads would only fight over cores.
+    limit_threads(1)
 
 
 def _validate(launcher: str, workers: int | None) -> int:

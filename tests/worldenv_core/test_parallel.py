@@ -1,4 +1,7 @@
 import math
+import os
+import subprocess
+import sys
 
 import pytest
 
@@ -26,3 +29,12 @@ def test_bad_launcher_and_workers_are_rejected():
         list(run_jobs(square, [1], launcher="slurm"))
     with pytest.raises(ValueError, match="workers must be >= 1"):
         list(run_jobs(square, [1], workers=0))
+
+
+def test_limit_threads_caps_torch_and_libraries_loaded_later():
+    # In a fresh interpreter: capping this test process would change the tests that follow it.
+    code = ("import os, torch; from worldenv_core.parallel import limit_threads; limit_threads(1); "
+            "print(torch.get_num_threads(), os.environ['OMP_NUM_THREADS'], os.environ['MKL_NUM_THREADS'])")
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "MKL_NUM_THREADS")}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["1", "1", "1"]
