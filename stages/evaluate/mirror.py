@@ -18,8 +18,8 @@ McNemar p), the direction part (exact McNemar of the move against its mirror) an
 from __future__ import annotations
 
 import argparse
-import textwrap
 import math
+import textwrap
 
 import numpy as np
 
