@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from stages.post_train_loop.random_update import main, mirror_update, random_update
+from stages.post_train_loop.random_update import main, mean_update, mirror_update, random_update, scaled_update
 from worldenv_core.errors import ConfigError
 from worldenv_core.models.checkpoint import load_model, save_state
 
@@ -119,3 +119,37 @@ def test_cli_mirror_records_its_direction(tmp_path, capsys):
     for k, v in model.state_dict().items():
         assert torch.allclose(v, sft.state_dict()[k] - 0.01, atol=1e-6)
     assert "reverse of its update" in capsys.readouterr().out
+
+
+def test_the_mean_of_several_updates_keeps_what_they_share():
+    base, like = states()
+    shared = like["weight"] - base["weight"]
+    noise = 0.01 * torch.randn(2, 3, generator=torch.Generator().manual_seed(3))
+    seeds = [{**like, "weight": base["weight"] + shared + noise}, {**like, "weight": base["weight"] + shared - noise}]
+    mean = mean_update(base, seeds)
+    assert torch.allclose(mean["weight"], like["weight"], atol=1e-6)  # the opposite draws cancel, the shared part stays
+    assert torch.equal(mean["bias"], base["bias"]) and torch.equal(mean["count"], base["count"])
+    assert mean_update(base, [like]) is like
+    along, moved = scaled_update(base, mean, 2.0)
+    assert moved == 1 and torch.allclose(along["weight"] - base["weight"], 2.0 * shared, atol=1e-6)
+    with pytest.raises(ConfigError, match="at least one"):
+        mean_update(base, [])
+    with pytest.raises(ConfigError, match="different tensors"):
+        mean_update(base, [like, {"weight": like["weight"]}])
+
+
+def test_cli_along_the_mean_update_of_two_seeds(tmp_path, capsys):
+    sft, post = sft_and_post(tmp_path)
+    other = {k: v + 0.03 for k, v in sft.state_dict().items()}
+    save_state(tmp_path / "post2", other, LINEAR, {"kind": "policy"})
+    main(["--policy", str(tmp_path / "sft"), "--like", str(tmp_path / "post"), str(tmp_path / "post2"),
+          "--out", str(tmp_path / "mean"), "--along"])
+    model, cfg = load_model(tmp_path / "mean")
+    record = cfg["meta"]["random_update"]
+    assert record["direction"] == "update" and record["seed"] is None and len(record["like"]) == 2
+    for k, v in model.state_dict().items():
+        assert torch.allclose(v, sft.state_dict()[k] + 0.02, atol=1e-6)
+    assert "the mean of their 2 updates" in capsys.readouterr().out
+    with pytest.raises(SystemExit):  # one direction at a time
+        main(["--policy", str(tmp_path / "sft"), "--like", str(tmp_path / "post"), "--out", str(tmp_path / "x"),
+              "--along", "--mirror"])
