@@ -24,8 +24,8 @@ direction as large per tensor.
         --frames "data/libero_spatial/expert-*/task*/expert_0000.mcap"
     python -m stages.post_train_loop.random_update --policy checkpoints/libero_spatial/sft \\
         --like <post_train_loop work>/policy --out outputs/libero_spatial-small/random_update/mirror --mirror
-    python -m stages.post_train_loop.random_update --policy checkpoints/libero_spatial/sft \
-        --like checkpoints/libero_spatial/real_reference_seed1 checkpoints/libero_spatial/real_reference_seed2 \
+    python -m stages.post_train_loop.random_update --policy checkpoints/libero_spatial/sft \\
+        --like checkpoints/libero_spatial/real_reference_seed1 checkpoints/libero_spatial/real_reference_seed2 \\
         --out outputs/libero_spatial-small/random_update/mean_real_seeds12 --along
 """
 
