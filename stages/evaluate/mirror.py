@@ -10,9 +10,16 @@ neighbourhood gains both ways). Per move: each side's paired gain over the start
 McNemar p), the direction part (exact McNemar of the move against its mirror) and the size part
 (exact test that the start is the odd one out among the three, `odd_one_out`).
 
+Does a reward point its updates up more often, or more steeply, than chance points a random direction?
+`--procedure NAME K...` groups moves (numbered 1, 2, ... in the order of `--move`) as draws of one
+procedure: per procedure how many direction parts are positive (one-sided sign test: a random direction
+points up half the time) and, for two procedures, the exact permutation p that the first one's parts
+are larger (one-sided, over every split of the moves into groups of those sizes).
+
     python -m stages.evaluate.mirror - --start results/s/evaluate-{A,B} \\
         --move "LOOP, real simulator" results/s/evaluate-C --mirror results/s/evaluate-D \\
-        --move "random move" results/s/evaluate-E --mirror results/s/evaluate-F [--json F] [--plot F.png]
+        --move "random move" results/s/evaluate-E --mirror results/s/evaluate-F \\
+        [--procedure RL 1 --procedure random 2] [--json F] [--plot F.png]
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ import numpy as np
 
 from stages.evaluate.odd_one_out import odd_one_out
 from stages.evaluate.paired import emit, paired_gain, pooled_policies
+from stages.evaluate.seeds import permutation_p
 from worldenv_core.cli import user_errors
 from worldenv_core.errors import ConfigError
 from worldenv_core.manifest import Manifest
@@ -53,6 +61,33 @@ def direction_and_size(start: dict, moves: list[tuple[str, dict, dict]]) -> dict
     return {"episodes": len(keys), "start": float(np.mean([start[k] for k in keys])), "moves": rows}
 
 
+def compare_directions(result: dict, procedures: dict[str, list[int]]) -> dict:
+    """`procedures`: {name: 1-based numbers of `result`'s moves}. -> each one's direction parts, how many point
+    up and the one-sided sign test; for two, the one-sided exact permutation p that the first's are larger."""
+    moves, seen = result["moves"], set()
+    for name, numbers in procedures.items():
+        if not numbers:
+            raise ConfigError(f"procedure {name!r} names no move")
+        for k in numbers:
+            if not 1 <= k <= len(moves):
+                raise ConfigError(f"procedure {name!r}: move {k} does not exist (moves are numbered 1 to {len(moves)})")
+            if k in seen:
+                raise ConfigError(f"move {k} ({moves[k - 1]['label']!r}) is in two procedures")
+            seen.add(k)
+    out: dict = {"procedures": {}}
+    for name, numbers in procedures.items():
+        parts = [moves[k - 1]["direction"] for k in numbers]
+        up = sum(part > 0 for part in parts)
+        sign_p = sum(math.comb(len(parts), j) for j in range(up, len(parts) + 1)) / 2 ** len(parts)
+        out["procedures"][name] = {"moves": numbers, "directions": parts, "mean": float(np.mean(parts)),
+                                   "up": up, "sign_p": sign_p}
+    if len(procedures) == 2:
+        (first, a), (second, b) = ((n, np.array(g["directions"])) for n, g in out["procedures"].items())
+        out.update(difference=float(a.mean() - b.mean()), permutation_p=permutation_p(a, b, greater=True),
+                   relabellings=math.comb(len(a) + len(b), len(a)), first=first, second=second)
+    return out
+
+
 def _points(value: float, ci: list[float]) -> str:
     return f"{100 * value:+.1f} [{100 * ci[0]:+.1f}, {100 * ci[1]:+.1f}]"
 
@@ -66,7 +101,20 @@ def markdown(result: dict) -> str:
             "only the mirror / only the move", "size part (gain + mirror's) / 2"]
     return "\n".join([*markdown_table(head, rows), "",
                       f"over {result['episodes']} episodes every policy ran; the start solves {100 * result['start']:.1f} %; "
-                      "p: exact McNemar (gains, direction), exact odd-one-out test of the start among the three (size)"]) + "\n"
+                      "p: exact McNemar (gains, direction), exact odd-one-out test of the start among the three (size)",
+                      *_procedures_markdown(result.get("by_procedure"))]) + "\n"
+
+
+def _procedures_markdown(by: dict | None) -> list[str]:
+    if not by:
+        return []
+    parts = [f"{name} {100 * g['mean']:+.1f} on average, {g['up']} of {len(g['directions'])} up (sign test p {g['sign_p']:.3g})"
+             for name, g in by["procedures"].items()]
+    lines = ["", "direction parts by procedure (one-sided tests): " + "; ".join(parts)]
+    if "permutation_p" in by:
+        lines[-1] += (f"; {by['first']} - {by['second']} {100 * by['difference']:+.1f} points, exact permutation "
+                      f"p = {by['permutation_p']:.3g} over {by['relabellings']} splits of the moves")
+    return lines
 
 
 def plot(result: dict, path: str) -> None:
@@ -93,6 +141,17 @@ def plot(result: dict, path: str) -> None:
     save_figure(fig, path)
 
 
+def _procedure_numbers(entries: list[list[str]]) -> dict[str, list[int]]:
+    procedures: dict[str, list[int]] = {}
+    for name, *numbers in entries:
+        if not numbers or not all(k.isdigit() for k in numbers):
+            raise ConfigError(f"--procedure {name} {' '.join(numbers)}: give a name, then move numbers (1, 2, ...)")
+        if name in procedures:
+            raise ConfigError(f"--procedure {name} is given twice: list all its moves once")
+        procedures[name] = [int(k) for k in numbers]
+    return procedures
+
+
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("experiment_dir", help="where record ids are looked up ('-': only output folders are named)")
@@ -101,9 +160,13 @@ def main(argv: list[str] | None = None) -> dict:
                    help="a label, then the moved policy's evaluations (pooled); repeat per move")
     p.add_argument("--mirror", nargs="+", action="append", required=True, metavar="EVALUATION",
                    help="the mirrored policy's evaluations (pooled), one --mirror per --move, in order")
+    p.add_argument("--procedure", nargs="+", action="append", default=[], metavar="NAME K",
+                   help="a procedure's name, then the numbers (1, 2, ... in --move order) of its moves; "
+                        "repeat per procedure")
     p.add_argument("--json", help="also write the result here")
     p.add_argument("--plot", help="also draw each move's and its mirror's gain here (.png)")
     args = p.parse_args(argv)
+    procedures = _procedure_numbers(args.procedure)
     if len(args.move) != len(args.mirror):
         raise ConfigError(f"{len(args.move)} --move but {len(args.mirror)} --mirror: give one mirror per move")
     for entry in args.move:
@@ -114,6 +177,8 @@ def main(argv: list[str] | None = None) -> dict:
     n = len(args.move)
     result = direction_and_size(sides[0][0], [(e[0], sides[1 + i][0], sides[1 + n + i][0])
                                               for i, e in enumerate(args.move)])
+    if procedures:
+        result["by_procedure"] = compare_directions(result, procedures)
     result.update(records={"start": args.start, "moves": args.move, "mirrors": args.mirror},
                   termination=sides[0][1]["termination"], suite=sides[0][1]["suite"])
     return emit(result, markdown(result), args.json, plot, args.plot)

@@ -2,7 +2,7 @@ import json
 
 import pytest
 
-from stages.evaluate.mirror import direction_and_size, main
+from stages.evaluate.mirror import compare_directions, direction_and_size, main
 from tests.stages.evaluate.test_budget import moved, outcomes
 from tests.stages.test_suites import _kept_evaluation
 from worldenv_core.errors import ConfigError
@@ -50,8 +50,32 @@ def test_cli_pairs_each_move_with_its_mirror_and_writes_json_and_plot(tmp_path, 
     assert json.loads((tmp_path / "m.json").read_text())["moves"][0]["direction_p"] == result["moves"][0]["direction_p"]
     assert (tmp_path / "m.png").stat().st_size > 0
     assert "| LOOP | +8.0 [" in capsys.readouterr().out
+    grouped = main(["-", "--start", str(s / "evaluate-s"), "--move", "LOOP", str(s / "evaluate-up"),
+                    "--mirror", str(s / "evaluate-down"), "--move", "random", str(s / "evaluate-r"),
+                    "--mirror", str(s / "evaluate-rm"), "--procedure", "RL", "1", "--procedure", "random", "2"])
+    assert grouped["by_procedure"]["procedures"]["RL"]["up"] == 1 and grouped["by_procedure"]["permutation_p"] == 0.5
+    assert "RL +8.0 on average, 1 of 1 up (sign test p 0.5)" in capsys.readouterr().out
+    with pytest.raises(ConfigError, match="give a name, then move numbers"):
+        main(["-", "--start", str(s / "evaluate-s"), "--move", "LOOP", str(s / "evaluate-up"),
+              "--mirror", str(s / "evaluate-down"), "--procedure", "RL", "first"])
     with pytest.raises(ConfigError, match="one mirror per move"):
         main(["-", "--start", str(s / "evaluate-s"), "--move", "LOOP", str(s / "evaluate-up"),
               "--move", "random", str(s / "evaluate-r"), "--mirror", str(s / "evaluate-down")])
     with pytest.raises(ConfigError, match="at least one evaluation"):
         main(["-", "--start", str(s / "evaluate-s"), "--move", "LOOP", "--mirror", str(s / "evaluate-down")])
+
+
+def test_procedures_count_directions_pointing_up_and_test_one_against_the_other():
+    result = {"moves": [{"label": f"m{i}", "direction": d} for i, d in enumerate([0.05, 0.03, 0.07, 0.04, -0.03])]}
+    by = compare_directions(result, {"RL": [1, 2, 3], "random": [4, 5]})
+    rl, rnd = by["procedures"]["RL"], by["procedures"]["random"]
+    assert rl["up"] == 3 and rl["sign_p"] == pytest.approx(1 / 8) and rl["mean"] == pytest.approx(0.05)
+    assert rnd["up"] == 1 and rnd["sign_p"] == pytest.approx(3 / 4)
+    # RL's three parts are the 2nd-largest sum of the C(5, 3) = 10 ways to pick three (0.07+0.05+0.04 is larger)
+    assert by["relabellings"] == 10 and by["permutation_p"] == pytest.approx(2 / 10)
+    assert by["difference"] == pytest.approx(0.05 - 0.005)
+    assert "permutation_p" not in compare_directions(result, {"RL": [1, 2, 3]})
+    with pytest.raises(ConfigError, match="does not exist"):
+        compare_directions(result, {"RL": [6]})
+    with pytest.raises(ConfigError, match="in two procedures"):
+        compare_directions(result, {"RL": [1, 2], "random": [2]})

@@ -18,6 +18,8 @@ def outcomes(successes):
 def test_the_permutation_p_is_exact_over_every_relabelling():
     # 3 vs 3 fully separated: only the observed split and its mirror are as extreme, 2 of C(6, 3) = 20
     assert permutation_p(np.array([0.7, 0.8, 0.9]), np.array([0.1, 0.2, 0.3])) == pytest.approx(2 / 20)
+    assert permutation_p(np.array([0.7, 0.8, 0.9]), np.array([0.1, 0.2, 0.3]), greater=True) == pytest.approx(1 / 20)
+    assert permutation_p(np.array([0.1, 0.2, 0.3]), np.array([0.7, 0.8, 0.9]), greater=True) == 1.0
     assert permutation_p(np.array([0.5, 0.5]), np.array([0.5, 0.5])) == 1.0
     with pytest.raises(ConfigError, match="too many"):
         permutation_p(np.zeros(20), np.zeros(20))
