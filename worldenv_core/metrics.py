@@ -113,6 +113,11 @@ def cluster_bootstrap_ci(statistic, clusters, n_boot: int = 2000, level: float =
     return [float(np.percentile(values, tail)), float(np.percentile(values, 100 - tail))]
 
 
+def fair_coin_tail(n: int, k: int) -> float:
+    """P(X <= k) for X ~ Binomial(n, 1/2), exactly: the tail of a sign test (by symmetry also P(X >= n - k))."""
+    return sum(math.comb(n, i) for i in range(k + 1)) / 2 ** n
+
+
 def paired_success_test(a: dict, b: dict) -> dict:
     """Two policies' successes on the same episodes ({episode key: bool}, e.g. (task, init state)):
     how many only `a` solved, how many only `b` solved, and the exact two-sided McNemar p-value
@@ -122,7 +127,7 @@ def paired_success_test(a: dict, b: dict) -> dict:
     only_a = sum(bool(a[k]) and not b[k] for k in keys)
     only_b = sum(bool(b[k]) and not a[k] for k in keys)
     n, k = only_a + only_b, min(only_a, only_b)
-    p = min(1.0, 2 * sum(math.comb(n, i) for i in range(k + 1)) / 2 ** n) if n else 1.0
+    p = min(1.0, 2 * fair_coin_tail(n, k)) if n else 1.0
     return {"episodes": len(keys), "only_a": only_a, "only_b": only_b, "p_value": p}
 
 

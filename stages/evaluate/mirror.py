@@ -36,6 +36,7 @@ from stages.evaluate.seeds import permutation_p
 from worldenv_core.cli import user_errors
 from worldenv_core.errors import ConfigError
 from worldenv_core.manifest import Manifest
+from worldenv_core.metrics import fair_coin_tail
 from worldenv_core.report import markdown_table
 
 
@@ -78,7 +79,7 @@ def compare_directions(result: dict, procedures: dict[str, list[int]]) -> dict:
     for name, numbers in procedures.items():
         parts = [moves[k - 1]["direction"] for k in numbers]
         up = sum(part > 0 for part in parts)
-        sign_p = sum(math.comb(len(parts), j) for j in range(up, len(parts) + 1)) / 2 ** len(parts)
+        sign_p = fair_coin_tail(len(parts), len(parts) - up)  # P(at least `up` of them up by chance)
         out["procedures"][name] = {"moves": numbers, "directions": parts, "mean": float(np.mean(parts)),
                                    "up": up, "sign_p": sign_p}
     if len(procedures) == 2:
