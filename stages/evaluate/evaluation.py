@@ -138,7 +138,7 @@ def _paired_lines(ctx: ReportContext, evals: list[StageRecord]) -> list[str]:
         t = paired_success_test(sft, post)
         if t["episodes"]:
             lines.append(f"{term}, paired over the {t['episodes']} episodes both policies ran: {t['only_a']} solved "
-                         f"by SFT only, {t['only_b']} by the post-trained policy only; exact McNemar p = {t['p_value']:.3f}.")
+                         f"by SFT only, {t['only_b']} by the post-trained policy only; exact McNemar p = {t['p_value']:.3g}.")
     return [""] + lines if lines else []
 
 
@@ -240,7 +240,7 @@ def view_table(ctx: ReportContext) -> list[str]:
         rows.append([f"`{checkpoint_name(summary['policy'])}`", parts, f"`{checkpoint_name(r.metrics['view_through'])}`",
                      term, t["episodes"], f"{100 * np.mean([a[k] for k in shared]):.1f} %",
                      f"{100 * np.mean([b[k] for k in shared]):.1f} %", f"{t['only_a']} / {t['only_b']}",
-                     f"{t['p_value']:.3f}"])
+                     f"{t['p_value']:.3g}"])
     return markdown_table(["policy", "shown as imagined", "world model", "termination", "paired episodes", "plain view",
                            "imagination's view", "solved only plain / only imagined view", "McNemar p"],
                           rows) if rows else []

@@ -63,8 +63,8 @@ def markdown(result: dict, names: list[str]) -> str:
     return "\n".join([*markdown_table(head, rows), "",
                       f"over {result['episodes']} episodes all ran ({result['episodes_that_differ']} where they differ): "
                       f"the first solves {result['first_successes']}, {result['expected']:.1f} expected if the "
-                      f"policies were exchangeable; exact p = {result['p_value']:.4f} (two-sided; "
-                      f"{result['p_lower']:.4f} that it is this low or lower)"]) + "\n"
+                      f"policies were exchangeable; exact p = {result['p_value']:.3g} (two-sided; "
+                      f"{result['p_lower']:.3g} that it is this low or lower)"]) + "\n"
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -128,7 +128,7 @@ def markdown(result: dict, a: str = "a", b: str = "b") -> str:
     rows.append(["**all**", result["episodes"], f"**{100 * result['a']:.1f} %**", f"**{100 * result['b']:.1f} %**",
                  f"{result['only_a']} / {result['only_b']}"])
     return "\n".join([*markdown_table(["task", "episodes", a, b, "solved only by the first / only by the second"], rows), "",
-                      f"exact McNemar p = {result['p_value']:.4f} over {result['episodes']} paired episodes"]) + "\n"
+                      f"exact McNemar p = {result['p_value']:.3g} over {result['episodes']} paired episodes"]) + "\n"
 
 
 def main(argv: list[str] | None = None) -> dict:
