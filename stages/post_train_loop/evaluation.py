@@ -98,6 +98,27 @@ def real_success(policy_path: str, contract: TaskContract, init_states: int, wor
     return sum(r["success"] for r in rows) / len(rows)
 
 
+def validation_success(policy_path: str, contract: TaskContract, episodes: int, workers, progress: bool) -> dict:
+    """Success (mean actions, oracle termination) on the fixed validation set: `episodes` fresh
+    placements spread evenly over the tasks trained on, the same at every evaluation and in every
+    run, never a benchmark init state nor a training context (`envs.placements`). What a recipe
+    is judged by: training rollouts' success moves with the contexts an iteration drew."""
+    from worldenv_core.envs.placements import placement_starts
+
+    tasks = contract.resolved_task_ids()
+    by_task: dict[int, list[int]] = {t: [] for t in tasks}
+    for st in placement_starts(contract.suite, tasks, episodes, "validation"):
+        by_task[st.task_id].append(st.seed)
+    jobs = [PolicyEvalJob(policy_path=policy_path, contract=contract, task_id=t, init_ids=(), termination="oracle",
+                          placements=tuple(seeds)) for t, seeds in by_task.items() if seeds]
+    rows = [r for out in run_jobs(evaluate_policy_task, jobs, workers=workers, desc="validation",
+                                  progress=progress, unit="task") for r in out["rows"]]
+    per_task = {f"validation_task{t}": float(np.mean([r["success"] for r in rows if r["task_id"] == t]))
+                for t in by_task if by_task[t]}  # scalars, one curve each in the tracker
+    return {"validation_success": sum(r["success"] for r in rows) / len(rows), **per_task,
+            "validation_episodes": len(rows)}
+
+
 def imagined_span(loop: StageRecord) -> str:
     """The imagined evaluation on fixed contexts and noise: first and last evaluation point."""
     rew, ok = loop.metrics.get("imagined_reward", {}), loop.metrics.get("imagined_success", {})

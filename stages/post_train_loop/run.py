@@ -23,10 +23,11 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from stages.post_train_loop.evaluation import PairedCheck, imagined_success, real_success, record_imagined, with_gap
+from stages.post_train_loop.evaluation import (PairedCheck, imagined_success, real_success, record_imagined,
+                                               validation_success, with_gap)
 from stages.post_train_loop.sweep import sweep_dir, write_summary
-from stages.post_train_loop.training import (contexts_from_episodes, imagined_collector, real_collector, real_starts,
-                                             rl_phase)
+from stages.post_train_loop.training import (contexts_from_episodes, imagined_collector, placements, real_collector,
+                                             real_starts, rl_phase)
 from worldenv_core.distributed import launched
 from worldenv_core.envs.replay import RealStart, unreplayable
 from worldenv_core.imagination.env import build_imagined_env
@@ -34,7 +35,7 @@ from worldenv_core.data.selection import collected_episodes
 from worldenv_core.manifest import StageRun
 from worldenv_core.models.checkpoint import load_checkpoint, read_config
 from worldenv_core.models.text import InstructionEncoder
-from worldenv_core.rl.loop import policy_param_groups
+from worldenv_core.rl.loop import OPTIMIZERS, check_success_range, make_optimizer
 from worldenv_core.rl.termination import check_eta, reflector_eta
 from worldenv_core.stage import (ConfigError, positive_int, require_task, resolve_checkpoint, resolve_policy, resolved,
                                  start, task_contract, work_dir)
@@ -47,6 +48,10 @@ log = logging.getLogger("worldenv.post_train_loop")
 # imagined: the method (world simulator + reflector); real: the reference, the real simulator and its oracle
 ENVS = ("imagined", "real")
 VERDICTS = ("own", "permuted")  # rl.verdicts: the environment's, or the control's shuffle of them
+CONTEXTS = ("episodes", "placements")  # rl.contexts: collected episodes' starts, or fresh placements (env=real)
+# rl settings added after runs were made: at these values a run keeps the work dir it had before them
+RL_DEFAULTS = {"mid_episode_frames": 0, "verdicts": "own", "contexts": "episodes", "group_success": None,
+               "max_kl": None, "kl_states": 512, "optimizer": "adam", "reset_optimizer": False, "train_scale_head": True}
 
 
 def validate(cfg: DictConfig) -> None:
@@ -60,7 +65,9 @@ def validate(cfg: DictConfig) -> None:
     for key in ("rl.iterations", "rl.contexts_per_iteration", "rl.ppo_epochs", "rl.minibatch", "rl.horizon"):
         positive_int(cfg, key)
     positive_int(cfg, "eval.every", allow_zero=True)
-    positive_int(cfg, "eval.init_states")
+    positive_int(cfg, "eval.init_states", allow_zero=True)
+    positive_int(cfg, "eval.validation", allow_zero=True)
+    positive_int(cfg, "rl.kl_states")
     positive_int(cfg, "eval.imagined_contexts", allow_zero=True)
     positive_int(cfg, "eval.record_contexts", allow_zero=True)
     positive_int(cfg, "eval.paired_contexts", allow_zero=True)
@@ -79,8 +86,22 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"rl.epsilon (the PPO clip) must be > 0, got {cfg.rl.epsilon}")
     if cfg.rl.target_kl is not None and not cfg.rl.target_kl > 0:
         raise ConfigError(f"rl.target_kl must be > 0 or null (no limit), got {cfg.rl.target_kl}")
-    if not (cfg.rl.lr_backbone > 0 and cfg.rl.lr_heads > 0):
-        raise ConfigError("rl.lr_backbone and rl.lr_heads must be > 0")
+    if min(cfg.rl.lr_backbone, cfg.rl.lr_heads) < 0 or not max(cfg.rl.lr_backbone, cfg.rl.lr_heads) > 0:
+        raise ConfigError(f"rl.lr_backbone and rl.lr_heads must be >= 0 (0: that group is not trained) and one of "
+                          f"them > 0, got {cfg.rl.lr_backbone} and {cfg.rl.lr_heads}")
+    if cfg.rl.max_kl is not None and not cfg.rl.max_kl > 0:
+        raise ConfigError(f"rl.max_kl (the trust region) must be > 0 or null (none), got {cfg.rl.max_kl}")
+    if cfg.rl.optimizer not in OPTIMIZERS:
+        raise ConfigError(f"rl.optimizer must be one of {list(OPTIMIZERS)}, got {cfg.rl.optimizer!r}")
+    try:
+        check_success_range(cfg.rl.group_success)
+    except (TypeError, ValueError) as e:
+        raise ConfigError(f"rl.group_success: {e}") from None
+    if cfg.rl.contexts not in CONTEXTS:
+        raise ConfigError(f"rl.contexts must be one of {list(CONTEXTS)}, got {cfg.rl.contexts!r}")
+    if cfg.rl.contexts == "placements" and (cfg.env != "real" or cfg.rl.mid_episode_frames):
+        raise ConfigError("rl.contexts=placements draws fresh scenes in the real simulator: it needs env=real and "
+                          "rl.mid_episode_frames=0 (the imagined route starts from recorded frames)")
     if cfg.rl.verdicts not in VERDICTS:
         raise ConfigError(f"rl.verdicts must be one of {list(VERDICTS)}, got {cfg.rl.verdicts!r}")
     if cfg.env not in ENVS:
@@ -101,7 +122,8 @@ def run(cfg: DictConfig) -> dict:
         encode = lambda s: encoder(s).to(device)  # noqa: E731
         policy, pmeta = load_checkpoint(policy_path, "policy", contract, device=str(device))
         task_ids = set(contract.resolved_task_ids())  # task.task_ids=[...] trains on those tasks' contexts only
-        episodes = collected_episodes(manifest, stage, contract.name, cfg.scale.name, cfg.expert_only)
+        fresh = rl.contexts == "placements"  # no collected episode needed: every context a new scene
+        episodes = [] if fresh else collected_episodes(manifest, stage, contract.name, cfg.scale.name, cfg.expert_only)
         if not real:
             worldsim_path = resolve_checkpoint(stage, cfg.worldsim_from, "train_worldsim", contract.name, cfg.scale.name)
             reflector_path = resolve_checkpoint(stage, cfg.reflector_from, "train_reflector", contract.name, cfg.scale.name)
@@ -129,7 +151,7 @@ def run(cfg: DictConfig) -> dict:
             starts, instructions = real_starts(episodes, rl.mid_episode_frames)
             keep = chosen(starts)
             starts, instructions = [starts[i] for i in keep], [instructions[i] for i in keep]
-            n_contexts = len(starts)
+            n_contexts = None if fresh else len(starts)
         else:
             eta = reflector_eta(reflector_path, cfg.eta)
             stage.record.tags["eta"] = eta  # the threshold used, also when it is the reflector's own
@@ -141,19 +163,18 @@ def run(cfg: DictConfig) -> dict:
             keep = chosen(starts)
             contexts, starts = [contexts[i] for i in keep], [starts[i] for i in keep]
             n_contexts = len(contexts)
-        if not n_contexts:
+        if n_contexts == 0:
             raise ConfigError(f"no collected episode of task(s) {sorted(task_ids)} to start rollouts from")
-        stage.metrics["contexts"] = n_contexts
+        stage.metrics["contexts"] = "fresh placements" if fresh else n_contexts
         # The work dir (what resume finds) is named by what defines the training and by its inputs,
         # not by how it is evaluated or shown: changing eval.* or progress continues the same run.
         key = {k: v for k, v in config.items() if k not in ("eval", "progress")}
         # added later: at their defaults (first frames only, the environment's own verdicts) they keep the
         # work dirs of earlier runs
-        key["rl"] = {k: v for k, v in key["rl"].items()
-                     if not (k == "mid_episode_frames" and not v) and not (k == "verdicts" and v == "own")}
+        key["rl"] = {k: v for k, v in key["rl"].items() if not (k in RL_DEFAULTS and v == RL_DEFAULTS[k])}
         work = work_dir(cfg.experiment_dir, "post_train_loop", key, stage.work_inputs())
         stage.lock(work)  # one run at a time trains into a work dir
-        optimizer = torch.optim.Adam(policy_param_groups(policy, rl.lr_backbone, rl.lr_heads))
+        optimizer = make_optimizer(policy, rl.optimizer, rl.lr_backbone, rl.lr_heads, rl.train_scale_head)
         provenance = {"policy": policy_path, "worldsim": worldsim_path, "reflector": reflector_path}
         trainer = Trainer(work, policy, {"ppo": optimizer}, model_config=read_config(policy_path)["model"],
                           meta={**pmeta, "post_trained_from": policy_path, "worldsim": worldsim_path,
@@ -173,16 +194,20 @@ def run(cfg: DictConfig) -> dict:
                           if cfg.eval.every else None)  # beside every real evaluation
                 values.update(imagined_success(policy, env, contexts, cfg.eval.imagined_contexts,
                                                cfg.eval.imagined_rollouts, encode, cfg.seed, paired))
-            if cfg.eval.every:
+            if cfg.eval.every and cfg.eval.init_states:
                 values["real_success"] = real_success(str(checkpoint or policy_path), contract, cfg.eval.init_states,
                                                       cfg.eval.workers, cfg.progress)
+            if cfg.eval.every and cfg.eval.validation:  # what a recipe is judged by, never the benchmark
+                values.update(validation_success(str(checkpoint or policy_path), contract, cfg.eval.validation,
+                                                 cfg.eval.workers, cfg.progress))
             if cfg.eval.record_contexts and not real:
                 record_imagined(policy, env, contexts, cfg.eval.record_contexts, contract, encode, camera,
                                 work / "imagined" / f"iter_{done:04d}", {**provenance, "iteration": str(done)}, cfg.seed)
             log.info("evaluation at iteration %d: %s", done, json.dumps(with_gap(values)))
             return values
 
-        collect = (real_collector(contract, starts, instructions, rl.n_rollouts, encode, rl.horizon,
+        collect = (real_collector(contract, placements(contract) if fresh else starts, instructions, rl.n_rollouts,
+                                  encode, rl.horizon,
                                   read_config(policy_path)["model"], pmeta, work, cfg.eval.workers, cfg.progress)
                    if real else imagined_collector(env, contexts, rl.n_rollouts, encode))
         trainer.fit([rl_phase(policy, optimizer, collect, n_contexts, rl, cfg.seed)], evaluate=evaluate,
@@ -197,10 +222,12 @@ def run(cfg: DictConfig) -> dict:
         stage.metrics.update({"iterations": rl.iterations, "train_wall_s": round(trainer.wall_s, 1),
                               "device": str(device), "final_mean_reward": history[-1].get("mean_reward"),
                               "real_success": by_step("real_success"), "imagined_reward": by_step("imagined_reward"),
+                              "validation_success": by_step("validation_success"),
                               "imagined_success": by_step("imagined_success"),
                               # evaluation: monitoring only, never a training signal
                               "real_episodes": len(by_step("real_success")) * cfg.eval.init_states
-                              * len(contract.resolved_task_ids()) + sum(h.get("paired_episodes", 0) for h in history),
+                              * len(contract.resolved_task_ids()) + sum(h.get("paired_episodes", 0) for h in history)
+                              + sum(h.get("validation_episodes", 0) for h in history),
                               "paired_hack_rate": by_step("paired_hack_rate"),
                               "paired_imagined_mixed": by_step("paired_imagined_mixed"),
                               "paired_real_mixed": by_step("paired_real_mixed"),

@@ -17,8 +17,8 @@ from worldenv_core import distributed
 from worldenv_core.envs.replay import RealStart
 from worldenv_core.imagination.env import Context, mid_episode_frames
 from worldenv_core.models.checkpoint import save_model
-from worldenv_core.rl.loop import (RolloutBatch, collect_rollouts, informative_groups, merge, permute_verdicts,
-                                   ppo_update, select)
+from worldenv_core.rl.loop import (RolloutBatch, check_success_range, collect_rollouts, informative_groups, merge,
+                                   permute_verdicts, ppo_update, select)
 from worldenv_core.rl.real_rollouts import collect_real_rollouts
 from worldenv_core.training import Phase, per_step, step_seed
 
@@ -58,44 +58,79 @@ def imagined_collector(env, contexts: list[Context], n_rollouts: int, encode) ->
                                                            encode, generator=gens)
 
 
-def real_collector(contract, starts: list[RealStart], instructions: list[str], n_rollouts: int, encode,
-                   horizon: int, model_config: dict, meta: dict, folder: Path, workers, progress: bool) -> Collect:
+def placements(contract) -> Callable[[int], tuple[RealStart, str]]:
+    """Context number k -> a fresh placement of the suite's tasks trained on (`rl.contexts=placements`):
+    consecutive numbers cycle through the tasks, so an iteration's contexts spread evenly over them,
+    and each number is its own placement (`envs.placements`, never a benchmark init state)."""
+    from worldenv_core.envs.placements import placement_seed
+    from worldenv_core.envs.tasks import get_task, suite_seed_id
+
+    tasks = contract.resolved_task_ids()
+
+    def start(k: int) -> tuple[RealStart, str]:
+        task = tasks[k % len(tasks)]
+        seed = placement_seed("train", suite_seed_id(contract.suite), task, k // len(tasks))
+        return RealStart(task_id=task, seed=seed), get_task(contract.suite, task).instruction
+    return start
+
+
+def real_collector(contract, starts: list[RealStart] | Callable[[int], tuple[RealStart, str]], instructions: list[str],
+                   n_rollouts: int, encode, horizon: int, model_config: dict, meta: dict, folder: Path, workers,
+                   progress: bool) -> Collect:
     """Rollouts in the real simulator (`env=real`, the reference): the behaviour policy is saved
     under `folder` for the worker processes, one folder per iteration (a worker that ran the
-    previous iteration must not reuse its cached weights), the previous one removed."""
+    previous iteration must not reuse its cached weights), the previous one removed. `starts`:
+    the contexts' list, or (fresh placements) a function of the context number."""
     count = itertools.count()
+    lookup = starts if callable(starts) else (lambda i: (starts[i], instructions[i]))
 
     def collect(behaviour, picks, gens):
         for old in folder.glob("behaviour_*"):
             shutil.rmtree(old, ignore_errors=True)
         path = save_model(folder / f"behaviour_{next(count)}", behaviour, model_config, meta)  # weights copied to CPU
-        return collect_real_rollouts(behaviour, path, contract, [starts[i] for i in picks],
-                                     [instructions[i] for i in picks], n_rollouts, encode, horizon, gens,
-                                     workers=workers, progress=progress)
+        chosen = [lookup(i) for i in picks]
+        return collect_real_rollouts(behaviour, path, contract, [st for st, _ in chosen], [i for _, i in chosen],
+                                     n_rollouts, encode, horizon, gens, workers=workers, progress=progress)
     return collect
 
 
-def rl_phase(policy, optimizer, collect: Collect, n_contexts: int, rl, seed: int) -> Phase:
+def rl_phase(policy, optimizer, collect: Collect, n_contexts: int | None, rl, seed: int) -> Phase:
     """One iteration = one step: N rollouts from each of a few contexts by the frozen behaviour
     policy (Algorithm 1 line 3), then `ppo_epochs` passes of PPO on their RLOO advantages, over
     the groups whose verdicts disagree (`rl.filter_groups`; none: no update this iteration).
     An iteration's contexts, rollouts and minibatches are drawn from its own seed, each context's
     rollouts from a generator of its own. In a torchrun launch every rank imagines its share of
     the contexts, the rollouts are gathered, and every rank makes the same PPO update on all of
-    them (rollouts are the cost; the update is cheap and needs no gradient exchange)."""
+    them (rollouts are the cost; the update is cheap and needs no gradient exchange).
+    `n_contexts` None: contexts without end (fresh placements), each iteration a run of
+    consecutive context numbers from a random 40-bit start (distinct across iterations but for
+    odds of about iterations^2 x contexts / 2^41). The recipe's other settings
+    (`rl.group_success`, `rl.max_kl`, `rl.reset_optimizer`) are read here."""
+    success_range = check_success_range(rl.get("group_success"))
+
     def step(g: torch.Generator) -> dict:
         t0 = time.perf_counter()
-        picks = torch.randint(n_contexts, (rl.contexts_per_iteration,), generator=g).tolist()
+        if n_contexts is None:
+            base = int(torch.randint(2**40, (1,), generator=g))
+            picks = list(range(base, base + rl.contexts_per_iteration))
+        else:
+            picks = torch.randint(n_contexts, (rl.contexts_per_iteration,), generator=g).tolist()
         streams = [torch.Generator().manual_seed(s) for s in torch.randint(2**62, (len(picks),), generator=g).tolist()]
         mine = distributed.shard(list(range(len(picks))), distributed.rank(), distributed.world_size())
         behaviour = copy.deepcopy(policy).eval()
         batch = merge(distributed.gather(collect(behaviour, [picks[i] for i in mine], [streams[i] for i in mine])))
         if rl.verdicts == "permuted":  # the control: the same successes on other rollouts
             batch = permute_verdicts(batch, rl.n_rollouts, g)
-        keep = informative_groups(batch, rl.n_rollouts) if rl.filter_groups else torch.ones_like(batch.by_reflector)
+        keep = (informative_groups(batch, rl.n_rollouts, success_range) if rl.filter_groups
+                else torch.ones_like(batch.by_reflector))
+        if rl.get("reset_optimizer"):  # each iteration's PPO from a fresh Adam (no moments from older batches)
+            optimizer.state.clear()
+        t_update = time.perf_counter()
         stats = (ppo_update(policy, optimizer, select(batch, keep), rl.ppo_epochs, rl.epsilon, rl.minibatch, generator=g,
-                            target_kl=rl.target_kl)
+                            target_kl=rl.target_kl, max_kl=rl.get("max_kl"), kl_states=rl.get("kl_states", 512))
                  if keep.any() else {})
+        stats["update_seconds"] = time.perf_counter() - t_update
+        stats.update({f"rollout_{k}_seconds": v for k, v in batch.timing.items()})  # summed over the rollouts
         distributed.broadcast_model(policy)  # the replicas made the same update; float noise must not make them drift
         return {"mean_reward": float(batch.rewards.mean()), "reflector_success_rate": float(batch.by_reflector.float().mean()),
                 "episode_length": float(batch.t_end.float().mean()), "mean_beta": batch.beta_mean,

@@ -8,6 +8,7 @@ the files that exist and reproduces the rest exactly.
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,6 +17,7 @@ import numpy as np
 
 from worldenv_core.contract import TaskContract
 from worldenv_core.envs.recording import attempt_seed, cached_env, expert_attempt, to_episode
+from worldenv_core.envs.replay import RealStart, restore
 
 
 @dataclass(frozen=True)
@@ -176,6 +178,7 @@ class PolicyEvalJob:
     view_through: str | None = None  # a world model checkpoint: the policy is shown `view_parts` of the real
     #                                  episode as that model would show them (`imagination.view`); None: as they are
     view_parts: tuple[str, ...] = ("frames", "proprio")
+    placements: tuple[int, ...] = ()  # fresh placements' reset seeds (`envs.placements`), after the init states
 
 
 _REFLECTORS: dict = {}
@@ -208,18 +211,21 @@ def evaluate_policy_task(job: PolicyEvalJob) -> dict:
     watch = job.termination == "all"
     reflector = cached_reflector(job.reflector_path, c) if job.termination in ("reflector", "all") else None
     rows, videos = [], {}
-    for i in job.init_ids:
+    starts = [(i, None) for i in job.init_ids] + [(-1, seed) for seed in job.placements]
+    for i, placement in starts:
         t0 = time.perf_counter()
         if job.view_through is not None:
             runner.new_episode()
         stop = ReflectorStop(reflector, job.eta, env.instruction, runner.encoder, watch=watch) if reflector else None
+        begin = None if placement is None else functools.partial(restore, env, RealStart(task_id=job.task_id, seed=placement))
         traj = policy_episode(env, runner, i, 0, c.max_steps, stop_on_success=job.termination == "oracle",
-                              stop_when=stop)
+                              stop_when=stop, start=begin)
         flags = [f.success for f in traj.frames] or [False]
         scores = stop.scores if stop is not None else []
         checks = [k * c.chunk for k in range(len(scores))]  # asked at every chunk boundary from step 0
         modes = episode_outcomes(flags, checks, scores, job.eta)
         base = {"suite": c.suite, "task_id": job.task_id, "task": env.task.name, "init_state": i,
+                **({"placement_seed": placement} if placement is not None else {}),
                 "ever_succeeded": bool(any(flags)), "first_success_step": flags.index(True) if any(flags) else None,
                 "error": traj.error, "seconds": time.perf_counter() - t0}
         for mode in (("oracle", "fixed", "reflector") if watch else (job.termination,)):

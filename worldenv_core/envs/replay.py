@@ -29,8 +29,10 @@ from worldenv_core.envs.recording import cached_env
 
 @dataclass(frozen=True)
 class RealStart:
-    """Where a context starts in the real simulator: a benchmark init state (`episode` None) or
-    frame `frame` of a recorded episode (its scene rebuilt from `seed`, its actions replayed)."""
+    """Where a context starts in the real simulator: a benchmark init state (`episode` None,
+    `init_state` >= 0), a fresh placement (`episode` None, `init_state` -1: LIBERO's placement sampler
+    from `seed`, see `envs.placements`) or frame `frame` of a recorded episode (its scene rebuilt
+    from its seed, its actions replayed)."""
 
     task_id: int
     init_state: int = -1  # benchmark init-state index; -1: the episode's own placement
@@ -42,7 +44,15 @@ class RealStart:
     def key(self) -> str:
         """Unique among the starts of a run: a benchmark init state is one per task, so its key names the
         task (results keyed by 'init0' alone once paired every task's start with the last task's replays)."""
-        return f"task{self.task_id}/init{self.init_state}" if self.episode is None else f"{self.episode}@{self.frame}"
+        if self.episode is None:
+            return f"task{self.task_id}/init{self.init_state}" if self.init_state >= 0 else \
+                f"task{self.task_id}/placement{self.seed}"
+        return f"{self.episode}@{self.frame}"
+
+    @property
+    def placement(self) -> bool:
+        """A fresh placement (no benchmark init state, no recorded episode)."""
+        return self.episode is None and self.init_state < 0
 
 
 def by_start(results) -> dict[str, dict]:
@@ -94,7 +104,14 @@ def unreplayable(contract: TaskContract, starts: list[RealStart], **run_kw) -> d
 
 
 def restore(env: LiberoEnv, start: RealStart, tolerance: float = 1e-3) -> Frame:
-    """Put `env` at the context's start and return that frame (no images)."""
+    """Put `env` at the context's start and return that frame (no images). A fresh placement is
+    checked against the benchmark's init states (`placements.BenchmarkOverlap` if it is one)."""
+    if start.placement:
+        from worldenv_core.envs.placements import check_not_benchmark
+
+        frame = env.reset(init_state=None, seed=start.seed)
+        check_not_benchmark(env.task.suite, start.task_id, frame.sim_state, env.sim.model.nq, start.seed)
+        return frame
     if start.episode is None:
         return env.reset(init_state=start.init_state, seed=start.seed)
     from worldenv_core.data.mcap_io import read_episode

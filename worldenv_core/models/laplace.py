@@ -35,3 +35,10 @@ def laplace_sample(mu: torch.Tensor, beta: torch.Tensor, generator: torch.Genera
     u = u.clamp(-0.5 + 1e-7, 0.5 - 1e-7)  # keep log1p finite at the tails
     b = scale * torch.exp(beta)
     return mu - b * torch.sign(u) * torch.log1p(-2.0 * u.abs())
+
+
+def laplace_kl(mu_p: torch.Tensor, beta_p: torch.Tensor, mu_q: torch.Tensor, beta_q: torch.Tensor) -> torch.Tensor:
+    """Per-element KL(Laplace(mu_p, e^beta_p) || Laplace(mu_q, e^beta_q)), in closed form:
+    beta_q - beta_p + |mu_p - mu_q| / b_q + (b_p / b_q) exp(-|mu_p - mu_q| / b_p) - 1."""
+    d = (mu_p - mu_q).abs()
+    return beta_q - beta_p + d * torch.exp(-beta_q) + torch.exp(beta_p - beta_q - d * torch.exp(-beta_p)) - 1.0

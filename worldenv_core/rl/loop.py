@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
@@ -65,6 +65,10 @@ class RolloutBatch:
     t_end: torch.Tensor  # (R,) steps taken
     by_reflector: torch.Tensor  # (R,) stopped because R > eta
     beta_mean: float
+    # the behaviour's Laplace parameters at every chunk (R, C, K, A): the exact KL of a trust region
+    mu_old: torch.Tensor | None = None
+    beta_old: torch.Tensor | None = None
+    timing: dict = field(default_factory=dict)  # seconds by part (physics, render, policy, ...), summed over rollouts
 
 
 @torch.no_grad()
@@ -89,11 +93,12 @@ def collect_rollouts(policy, env, contexts: list, n_rollouts: int, encoder,
         observer.on_reset(state)
     lang = encoder([c.instruction for c in expanded]).to(state.frames.device)
     camera = policy.cameras[0]
-    frames, proprio, actions, logps, masks, betas = [], [], [], [], [], []
+    frames, proprio, actions, logps, masks, betas, mus, betas_all = [], [], [], [], [], [], [], []
     while not state.done.all():
         mu, beta = policy({camera: state.frames}, state.proprio, lang)
         a = laplace_sample(mu, beta, generator, noise_scale)
         frames.append(state.frames), proprio.append(state.proprio), actions.append(a)
+        mus.append(mu), betas_all.append(beta)
         logps.append(laplace_log_prob(a, mu, beta))  # (R, K): one log-prob per executed step
         masks.append((~state.done).float()[:, None].expand(-1, a.shape[1]))
         betas.append(beta[~state.done].mean())
@@ -105,7 +110,8 @@ def collect_rollouts(policy, env, contexts: list, n_rollouts: int, encoder,
     return RolloutBatch(frames=torch.stack(frames, 1), proprio=torch.stack(proprio, 1), instruction=lang,
                         actions=torch.stack(actions, 1), logp_old=torch.stack(logps, 1), mask=torch.stack(masks, 1),
                         rewards=rewards, advantages=advantages, t_end=state.t, by_reflector=state.by_reflector,
-                        beta_mean=float(torch.stack(betas).mean()))
+                        beta_mean=float(torch.stack(betas).mean()), mu_old=torch.stack(mus, 1),
+                        beta_old=torch.stack(betas_all, 1))
 
 
 def merge(parts: list[RolloutBatch]) -> RolloutBatch:
@@ -118,11 +124,15 @@ def merge(parts: list[RolloutBatch]) -> RolloutBatch:
     def cat(name):
         return torch.cat([_pad_chunks(getattr(p, name), chunks) for p in parts])
     n = [len(p.rewards) for p in parts]
+    behaviour = all(p.mu_old is not None for p in parts)
+    timing = {k: sum(p.timing.get(k, 0.0) for p in parts) for k in dict.fromkeys(k for p in parts for k in p.timing)}
     return RolloutBatch(frames=cat("frames"), proprio=cat("proprio"), instruction=torch.cat([p.instruction for p in parts]),
                         actions=cat("actions"), logp_old=cat("logp_old"), mask=cat("mask"),
                         rewards=torch.cat([p.rewards for p in parts]), advantages=torch.cat([p.advantages for p in parts]),
                         t_end=torch.cat([p.t_end for p in parts]), by_reflector=torch.cat([p.by_reflector for p in parts]),
-                        beta_mean=sum(p.beta_mean * k for p, k in zip(parts, n)) / sum(n))
+                        beta_mean=sum(p.beta_mean * k for p, k in zip(parts, n)) / sum(n),
+                        mu_old=cat("mu_old") if behaviour else None, beta_old=cat("beta_old") if behaviour else None,
+                        timing=timing)
 
 
 def _pad_chunks(x: torch.Tensor, chunks: int) -> torch.Tensor:
@@ -132,14 +142,31 @@ def _pad_chunks(x: torch.Tensor, chunks: int) -> torch.Tensor:
     return torch.cat([x, x.new_zeros((x.shape[0], chunks - x.shape[1], *x.shape[2:]))], dim=1)
 
 
-def informative_groups(batch: RolloutBatch, n_rollouts: int) -> torch.Tensor:
+def informative_groups(batch: RolloutBatch, n_rollouts: int,
+                       success_range: tuple[float, float] | None = None) -> torch.Tensor:
     """(R,) bool: the rollouts of contexts whose N verdicts (success by the reward model's eta, or
     the oracle) do not all agree. Where all N agree, the advantages only spread the reward
     model's score below (or above) eta, which is noise, not a verdict: peers that gain with
-    world-model RL drop such groups rather than spend PPO steps on them."""
+    world-model RL drop such groups rather than spend PPO steps on them. `success_range`
+    (lo, hi): also drop mixed groups whose success fraction lies outside [lo, hi] (SimpleVLA-RL
+    and WoVR keep 10-90 %: one success in 16 is mostly the noise of that one rollout)."""
     verdicts = batch.by_reflector.view(-1, n_rollouts)
     mixed = verdicts.any(-1) & ~verdicts.all(-1)
+    if success_range is not None:
+        lo, hi = success_range
+        fraction = verdicts.float().mean(-1)
+        mixed &= (fraction >= lo - 1e-9) & (fraction <= hi + 1e-9)
     return mixed.repeat_interleave(n_rollouts)
+
+
+def check_success_range(success_range) -> tuple[float, float] | None:
+    """The group filter's (lo, hi) success fractions, validated; None stays None (mixed groups only)."""
+    if success_range is None:
+        return None
+    lo, hi = (float(x) for x in success_range)
+    if not 0.0 <= lo <= hi <= 1.0:
+        raise ValueError(f"group success range must be two fractions 0 <= lo <= hi <= 1, got {list(success_range)}")
+    return lo, hi
 
 
 def permute_verdicts(batch: RolloutBatch, n_rollouts: int, generator: torch.Generator | None = None) -> RolloutBatch:
@@ -155,30 +182,42 @@ def permute_verdicts(batch: RolloutBatch, n_rollouts: int, generator: torch.Gene
 
 def select(batch: RolloutBatch, keep: torch.Tensor) -> RolloutBatch:
     """The rollouts where `keep` (R,) is true (their advantages as computed on the whole group)."""
-    return RolloutBatch(frames=batch.frames[keep], proprio=batch.proprio[keep], instruction=batch.instruction[keep],
-                        actions=batch.actions[keep], logp_old=batch.logp_old[keep], mask=batch.mask[keep],
-                        rewards=batch.rewards[keep], advantages=batch.advantages[keep], t_end=batch.t_end[keep],
-                        by_reflector=batch.by_reflector[keep], beta_mean=batch.beta_mean)
+    return dataclasses.replace(batch, **{f.name: getattr(batch, f.name)[keep] for f in dataclasses.fields(batch)
+                                         if isinstance(getattr(batch, f.name), torch.Tensor)})
 
 
 def ppo_update(policy, optimizer, batch: RolloutBatch, epochs: int, epsilon: float, minibatch: int,
-               generator: torch.Generator | None = None, target_kl: float | None = None) -> dict:
+               generator: torch.Generator | None = None, target_kl: float | None = None,
+               max_kl: float | None = None, kl_states: int = 512, backtracks: int = 10) -> dict:
     """K epochs of eq. 5 over the batch's rollouts in minibatches of whole rollouts; the loss of
     each minibatch is normalised by its summed trajectory lengths. `target_kl`: the iteration's
     remaining steps are skipped once a minibatch's approximate KL from the behaviour policy
-    exceeds 1.5 x target_kl, that minibatch's own step included (as Stable-Baselines3's PPO does):
-    the clip bounds each ratio, not how far many steps together take the policy, and Adam's first
-    steps move every parameter by about the learning rate. `ppo_steps` counts the steps taken."""
+    exceeds 1.5 x target_kl, that minibatch's own step included (as Stable-Baselines3's PPO does).
+
+    `max_kl`: a trust region in action space. The clip bounds each ratio, not how far many steps
+    together take the policy, and Adam moves every parameter by about the learning rate whatever
+    the advantages' scale (measured here: one Adam step at lr 1e-4 took the policy to an
+    approximate KL of 0.7-1.9). So after every step, the first included, the exact KL from the
+    behaviour's Laplace to the policy's (mean per executed step, summed over action dimensions)
+    is measured on up to `kl_states` fixed chunk states of the batch; a step that crosses `max_kl`
+    is shrunk by halves (up to `backtracks` times, else undone) and ends the iteration.
+    `ppo_steps` counts the steps taken."""
     from worldenv_core.models.laplace import laplace_log_prob
 
     if target_kl is not None and not target_kl > 0:  # as ppo_loss checks epsilon: from_pack reaches here unvalidated
         raise ValueError(f"target_kl must be > 0 or None (no limit), got {target_kl}")
+    if max_kl is not None and not max_kl > 0:
+        raise ValueError(f"max_kl must be > 0 or None (no trust region), got {max_kl}")
+    if max_kl is not None and batch.mu_old is None:
+        raise ValueError("max_kl needs the behaviour's Laplace parameters in the batch (mu_old, beta_old)")
     policy.train()
     r, c = batch.mask.shape[:2]
     camera = policy.cameras[0]
+    params = [p for g in optimizer.param_groups for p in g["params"]]
     stats: dict[str, list[float]] = {"loss": [], "clip_fraction": [], "approx_kl": [], "ratio_mean": []}
-    steps = 0
+    steps, shrunk, first_kl, stopped = 0, 0, None, False
     order = [idx for _ in range(epochs) for idx in torch.randperm(r, generator=generator).split(minibatch)]
+    probe = _kl_probe(batch, kl_states, generator)  # drawn after the order: the minibatches are as before
     for idx in order:
         live = batch.mask[idx, :, 0] > 0  # (m, C): chunks the rollout really took
         rows, cols = live.nonzero(as_tuple=True)
@@ -193,19 +232,122 @@ def ppo_update(policy, optimizer, batch: RolloutBatch, epochs: int, epsilon: flo
             stats[k].append(v)
         if target_kl is not None and s["approx_kl"] > 1.5 * target_kl:
             break
+        before = [p.detach().clone() for p in params] if max_kl is not None else None
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
         optimizer.step()
         steps += 1
+        if max_kl is not None:
+            kl = probe.kl(policy)
+            first_kl = kl if first_kl is None else first_kl
+            if kl > max_kl:
+                stopped = True
+                after = [p.detach().clone() for p in params]
+                for k in range(1, backtracks + 1):  # shrink the step towards where it started
+                    _interpolate(params, before, after, 0.5 ** k)
+                    shrunk += 1
+                    if (kl := probe.kl(policy)) <= max_kl:
+                        break
+                else:
+                    _interpolate(params, before, after, 0.0)
+                    steps -= 1
+                break
     policy.eval()
-    return {**{k: sum(v) / len(v) for k, v in stats.items()}, "ppo_steps": steps}
+    out = {**{k: sum(v) / len(v) for k, v in stats.items()}, "ppo_steps": steps}
+    if probe is not None:
+        out.update(probe.summary(policy))
+        if max_kl is not None:
+            out.update({"first_step_kl": first_kl if first_kl is not None else 0.0, "backtracks": shrunk,
+                        "trust_region_hit": float(stopped)})
+    return out
 
 
-def policy_param_groups(policy, lr_backbone: float, lr_heads: float) -> list[dict]:
+def _interpolate(params, before, after, w: float) -> None:
+    """params <- before + w (after - before), in place."""
+    with torch.no_grad():
+        for p, b, a in zip(params, before, after):
+            p.copy_(b + w * (a - b))
+
+
+@dataclass
+class _KLProbe:
+    """Fixed chunk states of a batch and the behaviour's Laplace at them: how far the policy moved."""
+
+    frames: torch.Tensor
+    proprio: torch.Tensor
+    instruction: torch.Tensor
+    mu_old: torch.Tensor  # (P, K, A)
+    beta_old: torch.Tensor
+    mask: torch.Tensor  # (P, K): the steps executed
+
+    @torch.no_grad()
+    def _forward(self, policy):
+        was = policy.training
+        policy.eval()
+        mu, beta = policy({policy.cameras[0]: self.frames}, self.proprio, self.instruction)
+        policy.train(was)
+        return mu, beta
+
+    def kl(self, policy) -> float:
+        """Mean exact KL(behaviour || policy) per executed step, summed over action dimensions."""
+        from worldenv_core.models.laplace import laplace_kl
+
+        mu, beta = self._forward(policy)
+        per_step = laplace_kl(self.mu_old, self.beta_old, mu, beta).sum(-1)
+        return float((per_step * self.mask).sum() / self.mask.sum().clamp(min=1))
+
+    def summary(self, policy) -> dict:
+        """The iteration's move: exact KL and the RMS change of the mean action (normalised units)."""
+        from worldenv_core.models.laplace import laplace_kl
+
+        mu, beta = self._forward(policy)
+        m = self.mask[..., None].expand_as(mu)
+        n = m.sum().clamp(min=1)
+        per_step = laplace_kl(self.mu_old, self.beta_old, mu, beta).sum(-1)
+        return {"exact_kl": float((per_step * self.mask).sum() / self.mask.sum().clamp(min=1)),
+                "action_shift_rms": float((((mu - self.mu_old) ** 2) * m).sum().div(n).sqrt())}
+
+
+def _kl_probe(batch: RolloutBatch, n: int, generator: torch.Generator | None) -> _KLProbe | None:
+    """Up to `n` of the batch's live chunk states, drawn once per update."""
+    if batch.mu_old is None:
+        return None
+    rows, cols = (batch.mask[:, :, 0] > 0).nonzero(as_tuple=True)
+    if len(rows) > n:
+        pick = torch.randperm(len(rows), generator=generator)[:n]
+        rows, cols = rows[pick], cols[pick]
+    return _KLProbe(frames=batch.frames[rows, cols], proprio=batch.proprio[rows, cols],
+                    instruction=batch.instruction[rows], mu_old=batch.mu_old[rows, cols].detach(),
+                    beta_old=batch.beta_old[rows, cols].detach(), mask=batch.mask[rows, cols])
+
+
+def policy_param_groups(policy, lr_backbone: float, lr_heads: float, scale_head: bool = True) -> list[dict]:
     """The paper's two learning rates: the vision backbone (or its LoRA adapters) and the rest
-    (trunk, action and scale heads), trainable parameters only."""
+    (trunk, action and scale heads), trainable parameters only. A learning rate of 0 leaves its
+    group out: RL then trains the other alone (e.g. `rl.lr_backbone=0`, the heads only).
+    `scale_head=False` keeps the Laplace scale where SFT's second phase put it: RL's gradient on
+    it is the noise of |a - mu| / b - 1, and a trust region spent on the scale moves no action."""
+    if lr_backbone < 0 or lr_heads < 0 or not (lr_backbone > 0 or lr_heads > 0):
+        raise ValueError(f"learning rates must be >= 0 and one of them > 0, got backbone {lr_backbone}, heads {lr_heads}")
     backbone = [p for p in policy.backbone.parameters() if p.requires_grad]
     ids = {id(p) for p in backbone}
+    if not scale_head:
+        ids |= {id(p) for p in policy.scale_head.parameters()}
     rest = [p for p in policy.parameters() if p.requires_grad and id(p) not in ids]
-    return [{"params": backbone, "lr": lr_backbone, "name": "backbone"}, {"params": rest, "lr": lr_heads, "name": "heads"}]
+    groups = [{"params": backbone, "lr": lr_backbone, "name": "backbone"}, {"params": rest, "lr": lr_heads, "name": "heads"}]
+    return [g for g in groups if g["lr"] > 0 and g["params"]]
+
+
+OPTIMIZERS = ("adam", "sgd")
+
+
+def make_optimizer(policy, name: str, lr_backbone: float, lr_heads: float, scale_head: bool = True) -> torch.optim.Optimizer:
+    """LOOP's optimiser over `policy_param_groups`: Adam (the paper's) or plain SGD, whose step is
+    proportional to the gradient, so the advantages' scale sets the step as Adam's normalisation does not."""
+    groups = policy_param_groups(policy, lr_backbone, lr_heads, scale_head)
+    if name == "adam":
+        return torch.optim.Adam(groups)
+    if name == "sgd":
+        return torch.optim.SGD(groups, lr=groups[0]["lr"])
+    raise ValueError(f"rl.optimizer must be one of {list(OPTIMIZERS)}, got {name!r}")

@@ -17,6 +17,7 @@ behaviour log-probabilities are computed here in one batch, so PPO's first ratio
 from __future__ import annotations
 
 import functools
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -61,24 +62,33 @@ def real_rollout(job: RealRolloutJob) -> dict:
 
     c = job.contract
     camera = c.cameras[0]
+    clock = {"env_build": 0.0, "reset": 0.0, "render": 0.0, "policy": 0.0, "physics": 0.0}
+    t0 = time.perf_counter()
     env = cached_env(c.suite, job.start.task_id, c.cameras, c.image_size, render=True)
     policy = _policy(job.policy_path, c)
+    clock["env_build"] = time.perf_counter() - t0  # ~0 once the worker has this task's env and iteration's policy
     lang = torch.as_tensor(job.instruction, dtype=torch.float32)[None]
     g = torch.Generator().manual_seed(int(job.seed))
     frames, proprio, chunks, executed = [], [], [], []
     first_success, error = None, None
+
+    def timed(part, fn, *args):
+        t = time.perf_counter()
+        out = fn(*args)
+        clock[part] += time.perf_counter() - t
+        return out
     try:
-        frame = restore(env, job.start)
+        frame = timed("reset", restore, env, job.start)
         t = 0
         while t < job.horizon and first_success is None:
-            image = env.render([camera])[camera]
-            mu, beta = policy({camera: torch.from_numpy(image).permute(2, 0, 1)[None]},
-                              torch.as_tensor(frame.proprio, dtype=torch.float32)[None], lang)
+            image = timed("render", env.render, [camera])[camera]
+            mu, beta = timed("policy", policy, {camera: torch.from_numpy(image).permute(2, 0, 1)[None]},
+                             torch.as_tensor(frame.proprio, dtype=torch.float32)[None], lang)
             a = laplace_sample(mu, beta, g, job.noise_scale)
             frames.append(image), proprio.append(frame.proprio.astype(np.float32)), chunks.append(a[0].numpy())
             n = 0
             for action in policy.unnormalize_actions(a)[0].numpy():
-                frame = env.step(action)
+                frame = timed("physics", env.step, action)
                 t, n = t + 1, n + 1
                 if frame.success:
                     first_success = t
@@ -87,8 +97,9 @@ def real_rollout(job: RealRolloutJob) -> dict:
     except Exception as e:  # noqa: BLE001 - a physics failure is a failed rollout, not a dead worker
         error = f"{type(e).__name__}: {e}"
         frames, proprio, chunks = frames[:len(executed)], proprio[:len(executed)], chunks[:len(executed)]
+    clock["total"] = time.perf_counter() - t0
     return {"index": job.index, "start": job.start, "seed": job.seed, "frames": frames, "proprio": proprio, "actions": chunks,
-            "executed": executed, "first_success": first_success, "error": error}
+            "executed": executed, "first_success": first_success, "error": error, "seconds": clock}
 
 
 def collect_real_rollouts(behaviour, behaviour_path: str | Path, contract: TaskContract, starts: list[RealStart],
@@ -135,9 +146,13 @@ def collect_real_rollouts(behaviour, behaviour_path: str | Path, contract: TaskC
         mu, beta = behaviour.eval()({camera: frames[rr, cc]}, proprio[rr, cc], lang[rr])
         logp[rr, cc] = laplace_log_prob(actions[rr, cc], mu, beta)
         betas = beta.mean() if len(rr) else torch.tensor(float("nan"))
+        mu_old, beta_old = torch.zeros_like(actions), torch.zeros_like(actions)
+        mu_old[rr, cc], beta_old[rr, cc] = mu, beta
     success = torch.tensor([r["error"] is None and r["first_success"] is not None for r in runs], device=dev)
     rewards = success.float()
     return RolloutBatch(frames=frames, proprio=proprio, instruction=lang, actions=actions, logp_old=logp * mask,
                         mask=mask, rewards=rewards,
                         advantages=rloo_advantages(rewards.view(len(starts), n_rollouts)).reshape(-1),
-                        t_end=mask.sum((1, 2)).long(), by_reflector=success, beta_mean=float(betas))
+                        t_end=mask.sum((1, 2)).long(), by_reflector=success, beta_mean=float(betas),
+                        mu_old=mu_old, beta_old=beta_old,
+                        timing={k: sum(r["seconds"][k] for r in runs) for k in runs[0]["seconds"]} if runs else {})

@@ -182,6 +182,32 @@ def test_the_real_simulator_reference_trains_on_real_rollouts_rewarded_by_the_or
         post_train_loop(cfg("post_train_loop", exp, *LOOP, "env=simulated"))
 
 
+def test_the_real_route_from_fresh_placements_with_a_validation_set_and_a_trust_region(trained):
+    """rl.contexts=placements: every context a fresh placement (no collected episode needed), the
+    fixed validation set measured before training and at each evaluation, the update bounded by
+    max_kl, the rollouts' time split recorded; every episode counted by use."""
+    exp, _ = trained
+    metrics = post_train_loop(cfg("post_train_loop", exp, *LOOP, "env=real", "rl.contexts=placements", "rl.iterations=1",
+                                  "eval.every=1", "eval.init_states=0", "eval.validation=2", "rl.max_kl=0.05",
+                                  "rl.train_scale_head=false", "rl.group_success=[0.1,0.9]"))
+    assert metrics["contexts"] == "fresh placements" and metrics["train_real_episodes"] == 2
+    assert set(metrics["validation_success"]) == {"0", "1"} and metrics["real_success"] == {}
+    assert metrics["real_episodes"] == 2 * 2  # the validation set at iterations 0 and 1, no benchmark init state
+    rec = Manifest(exp).latest("post_train_loop", task="tiny", env="real")
+    history = json.loads(Path(next(p for p in Manifest(exp).resolve(rec) if p.name == "training.json")).read_text())
+    step = next(h for h in history if "mean_reward" in h)
+    assert step["rollout_physics_seconds"] > 0 and step["rollout_render_seconds"] > 0 and "update_seconds" in step
+    assert history[0]["validation_episodes"] == 2 and "validation_task0" in history[0]
+    for override, match in (("rl.contexts=scenes", r"rl.contexts must be one of \['episodes', 'placements'\]"),
+                            ("rl.group_success=[0.9,0.1]", "rl.group_success: .*two fractions"),
+                            ("rl.max_kl=0", "max_kl .* must be > 0"), ("rl.optimizer=rmsprop", "rl.optimizer must be"),
+                            ("rl.lr_heads=0", "one of them > 0")):
+        with pytest.raises(ConfigError, match=match):
+            post_train_loop(cfg("post_train_loop", exp, *LOOP, "env=real", "rl.lr_backbone=0", override))
+    with pytest.raises(ConfigError, match="placements .* needs env=real"):
+        post_train_loop(cfg("post_train_loop", exp, *LOOP, "rl.contexts=placements"))
+
+
 def test_rollouts_start_part_way_through_the_collected_episodes(trained):
     """rl.mid_episode_frames=n: LOOP's contexts are n recorded frames of each episode before its
     first success, in imagination (the paired replays start there too) and in the real reference."""

@@ -185,3 +185,85 @@ def test_permuted_verdicts_keep_how_many_succeed_and_move_them_to_other_rollouts
     assert torch.equal(out.by_reflector, out.rewards > 0.5)  # each verdict moves with its reward
     assert torch.allclose(out.advantages, rloo_advantages(out.rewards.view(2, 4)).reshape(-1))
     assert torch.equal(out.t_end, batch.t_end) and torch.equal(out.instruction, batch.instruction)  # rollouts stay
+
+
+def _batch_of_verdicts(success: list[bool], n: int):
+    from worldenv_core.rl.loop import RolloutBatch
+
+    s = torch.tensor(success)
+    r, rewards = len(s), s.float()
+    return RolloutBatch(frames=torch.zeros(r, 1, 3, 4, 4, dtype=torch.uint8), proprio=torch.zeros(r, 1, 7),
+                        instruction=torch.arange(r).float()[:, None], actions=torch.zeros(r, 1, 4, 7),
+                        logp_old=torch.zeros(r, 1, 4), mask=torch.ones(r, 1, 4), rewards=rewards,
+                        advantages=rloo_advantages(rewards.view(-1, n)).reshape(-1), t_end=torch.full((r,), 4),
+                        by_reflector=s, beta_mean=0.0)
+
+
+def test_groups_are_filtered_by_their_success_fraction():
+    """With a [lo, hi] range a mixed group also needs its success fraction inside it (10-90 % as
+    SimpleVLA-RL and WoVR): of four groups of 10 with 0, 1, 5 and 9 successes, [0.1, 0.9] keeps
+    the mixed three, [0.2, 0.8] only the one with 5; the bounds are checked."""
+    from worldenv_core.rl.loop import check_success_range, informative_groups
+
+    groups = [[True] * k + [False] * (10 - k) for k in (0, 1, 5, 9)]
+    batch = _batch_of_verdicts([v for g in groups for v in g], 10)
+    kept = lambda rng: informative_groups(batch, 10, rng).view(4, 10)[:, 0].tolist()  # noqa: E731
+    assert kept(None) == [False, True, True, True]
+    assert kept((0.1, 0.9)) == [False, True, True, True]
+    assert kept((0.2, 0.8)) == [False, False, True, False]
+    assert kept((0.0, 1.0)) == kept(None)  # all-agreeing groups carry no advantage: dropped at any range
+    assert check_success_range(None) is None and check_success_range([0.1, 0.9]) == (0.1, 0.9)
+    for bad in ([0.9, 0.1], [-0.1, 0.5], [0.5, 1.5]):
+        with pytest.raises(ValueError, match="two fractions"):
+            check_success_range(bad)
+
+
+def test_the_trust_region_bounds_the_exact_kl_of_every_update_the_first_step_included():
+    """At a learning rate whose first Adam step alone moves the policy far (as measured on the
+    project's policy), `max_kl` measures the exact Laplace KL after every step, shrinks the step
+    that crosses it and stops: the update ends within the bound, where the same update without
+    it ends far beyond; and it is refused without the behaviour's Laplace parameters."""
+    import copy
+    import dataclasses
+
+    from worldenv_core.rl.loop import collect_rollouts, policy_param_groups, ppo_update
+
+    policy, contexts, encoder = _policy_and_contexts()
+    batch = collect_rollouts(policy, ActionRewardEnv(), contexts, 8, encoder, torch.Generator().manual_seed(0))
+    assert batch.mu_old.shape == batch.actions.shape == batch.beta_old.shape
+    out = {}
+    for bound in (None, 0.01):
+        p = copy.deepcopy(policy)
+        out[bound] = ppo_update(p, torch.optim.Adam(policy_param_groups(p, 1e-3, 1e-3)), batch, epochs=3, epsilon=0.2,
+                                minibatch=4, generator=torch.Generator().manual_seed(0), max_kl=bound)
+    free, bounded = out[None], out[0.01]
+    assert free["exact_kl"] > 0.1 and free["ppo_steps"] == 12, free
+    assert bounded["exact_kl"] <= 0.01 + 1e-6 and bounded["trust_region_hit"] == 1.0, bounded
+    assert bounded["first_step_kl"] > 0 and bounded["ppo_steps"] < 12 and bounded["backtracks"] >= 1
+    assert 0 < bounded["action_shift_rms"] < free["action_shift_rms"]
+    with pytest.raises(ValueError, match="needs the behaviour's Laplace"):
+        ppo_update(policy, torch.optim.Adam(policy.parameters()), dataclasses.replace(batch, mu_old=None), 1, 0.2, 4,
+                   max_kl=0.01)
+    with pytest.raises(ValueError, match="max_kl must be > 0"):
+        ppo_update(policy, torch.optim.Adam(policy.parameters()), batch, 1, 0.2, 4, max_kl=0.0)
+
+
+def test_which_parameters_rl_trains_and_with_which_optimiser():
+    """A learning rate of 0 leaves its group out; scale_head=False keeps the Laplace scale as SFT
+    fitted it; sgd and adam are the optimisers, any other name refused."""
+    from worldenv_core.rl.loop import make_optimizer, policy_param_groups
+
+    policy, _, _ = _policy_and_contexts()
+    ids = lambda groups: {id(p) for g in groups for p in g["params"]}  # noqa: E731
+    backbone, scale = {id(p) for p in policy.backbone.parameters()}, {id(p) for p in policy.scale_head.parameters()}
+    every = ids(policy_param_groups(policy, 1e-4, 1e-5))
+    assert backbone | scale <= every
+    heads_only = ids(policy_param_groups(policy, 0.0, 1e-5))
+    assert not heads_only & backbone and scale <= heads_only
+    assert not ids(policy_param_groups(policy, 1e-4, 1e-5, scale_head=False)) & scale
+    with pytest.raises(ValueError, match="one of them > 0"):
+        policy_param_groups(policy, 0.0, 0.0)
+    assert isinstance(make_optimizer(policy, "sgd", 1e-4, 1e-5), torch.optim.SGD)
+    assert isinstance(make_optimizer(policy, "adam", 1e-4, 1e-5), torch.optim.Adam)
+    with pytest.raises(ValueError, match="rl.optimizer must be one of"):
+        make_optimizer(policy, "rmsprop", 1e-4, 1e-5)
