@@ -51,7 +51,8 @@ VERDICTS = ("own", "permuted")  # rl.verdicts: the environment's, or the control
 CONTEXTS = ("episodes", "placements")  # rl.contexts: collected episodes' starts, or fresh placements (env=real)
 # rl settings added after runs were made: at these values a run keeps the work dir it had before them
 RL_DEFAULTS = {"mid_episode_frames": 0, "verdicts": "own", "contexts": "episodes", "group_success": None,
-               "max_kl": None, "kl_states": 512, "optimizer": "adam", "reset_optimizer": False, "train_scale_head": True}
+               "max_kl": None, "kl_states": 512, "optimizer": "adam", "reset_optimizer": False, "train_scale_head": True,
+               "direction_check": False}
 
 
 def validate(cfg: DictConfig) -> None:
@@ -197,6 +198,8 @@ def run(cfg: DictConfig) -> dict:
             if cfg.eval.every and cfg.eval.init_states:
                 values["real_success"] = real_success(str(checkpoint or policy_path), contract, cfg.eval.init_states,
                                                       cfg.eval.workers, cfg.progress)
+            if checkpoint is not None and cfg.eval.keep_policies:  # the policy at this point, for benchmark runs later
+                trainer.save_final(work / "evaluated" / f"iter_{done:04d}", iteration=done)
             if cfg.eval.every and cfg.eval.validation:  # what a recipe is judged by, never the benchmark
                 values.update(validation_success(str(checkpoint or policy_path), contract, cfg.eval.validation,
                                                  cfg.eval.workers, cfg.progress))

@@ -127,7 +127,8 @@ def rl_phase(policy, optimizer, collect: Collect, n_contexts: int | None, rl, se
             optimizer.state.clear()
         t_update = time.perf_counter()
         stats = (ppo_update(policy, optimizer, select(batch, keep), rl.ppo_epochs, rl.epsilon, rl.minibatch, generator=g,
-                            target_kl=rl.target_kl, max_kl=rl.get("max_kl"), kl_states=rl.get("kl_states", 512))
+                            target_kl=rl.target_kl, max_kl=rl.get("max_kl"), kl_states=rl.get("kl_states", 512),
+                            direction_groups=rl.n_rollouts if rl.get("direction_check") else None)
                  if keep.any() else {})
         stats["update_seconds"] = time.perf_counter() - t_update
         stats.update({f"rollout_{k}_seconds": v for k, v in batch.timing.items()})  # summed over the rollouts

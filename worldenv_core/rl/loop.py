@@ -188,7 +188,8 @@ def select(batch: RolloutBatch, keep: torch.Tensor) -> RolloutBatch:
 
 def ppo_update(policy, optimizer, batch: RolloutBatch, epochs: int, epsilon: float, minibatch: int,
                generator: torch.Generator | None = None, target_kl: float | None = None,
-               max_kl: float | None = None, kl_states: int = 512, backtracks: int = 10) -> dict:
+               max_kl: float | None = None, kl_states: int = 512, backtracks: int = 10,
+               direction_groups: int | None = None) -> dict:
     """K epochs of eq. 5 over the batch's rollouts in minibatches of whole rollouts; the loss of
     each minibatch is normalised by its summed trajectory lengths. `target_kl`: the iteration's
     remaining steps are skipped once a minibatch's approximate KL from the behaviour policy
@@ -201,6 +202,10 @@ def ppo_update(policy, optimizer, batch: RolloutBatch, epochs: int, epsilon: flo
     behaviour's Laplace to the policy's (mean per executed step, summed over action dimensions)
     is measured on up to `kl_states` fixed chunk states of the batch; a step that crosses `max_kl`
     is shrunk by halves (up to `backtracks` times, else undone) and ends the iteration.
+    `direction_groups` = N: before the first step, the policy gradient of the batch's even groups
+    of N rollouts against its odd ones (`direction_cosine`): about 0 when the batch is too small for
+    its direction to be the reward's, towards 1 as it grows (with a signal s and per-group noise,
+    cos ~ B|s|^2 / (B|s|^2 + 2 sigma^2) over B groups, so it says how many groups would do).
     `ppo_steps` counts the steps taken."""
     from worldenv_core.models.laplace import laplace_log_prob
 
@@ -218,6 +223,7 @@ def ppo_update(policy, optimizer, batch: RolloutBatch, epochs: int, epsilon: flo
     steps, shrunk, first_kl, stopped = 0, 0, None, False
     order = [idx for _ in range(epochs) for idx in torch.randperm(r, generator=generator).split(minibatch)]
     probe = _kl_probe(batch, kl_states, generator)  # drawn after the order: the minibatches are as before
+    direction = _direction_cosine(policy, batch, direction_groups, epsilon) if direction_groups else None
     for idx in order:
         live = batch.mask[idx, :, 0] > 0  # (m, C): chunks the rollout really took
         rows, cols = live.nonzero(as_tuple=True)
@@ -255,12 +261,42 @@ def ppo_update(policy, optimizer, batch: RolloutBatch, epochs: int, epsilon: flo
                 break
     policy.eval()
     out = {**{k: sum(v) / len(v) for k, v in stats.items()}, "ppo_steps": steps}
+    if direction is not None:
+        out["direction_cosine"] = direction
     if probe is not None:
         out.update(probe.summary(policy))
         if max_kl is not None:
             out.update({"first_step_kl": first_kl if first_kl is not None else 0.0, "backtracks": shrunk,
                         "trust_region_hit": float(stopped)})
     return out
+
+
+def _policy_gradient(policy, batch: RolloutBatch, rows: torch.Tensor, epsilon: float) -> torch.Tensor:
+    """The flattened gradient of eq. 5 over `rows` at the current parameters (zeroed afterwards)."""
+    from worldenv_core.models.laplace import laplace_log_prob
+
+    camera = policy.cameras[0]
+    live = batch.mask[rows, :, 0] > 0
+    rr, cc = live.nonzero(as_tuple=True)
+    mu, beta = policy({camera: batch.frames[rows][rr, cc]}, batch.proprio[rows][rr, cc], batch.instruction[rows][rr])
+    logp = torch.zeros_like(batch.logp_old[rows])
+    logp[rr, cc] = laplace_log_prob(batch.actions[rows][rr, cc], mu, beta)
+    loss, _ = ppo_loss(logp.flatten(1), batch.logp_old[rows].flatten(1), batch.advantages[rows],
+                       batch.mask[rows].flatten(1), epsilon)
+    params = [p for p in policy.parameters() if p.requires_grad]
+    grads = torch.autograd.grad(loss, params, allow_unused=True)
+    return torch.cat([(g if g is not None else torch.zeros_like(p)).flatten() for g, p in zip(grads, params)])
+
+
+def _direction_cosine(policy, batch: RolloutBatch, n: int, epsilon: float) -> float | None:
+    """Cosine between the policy gradients of the even and the odd groups of N rollouts."""
+    groups = len(batch.rewards) // n
+    if groups < 2:
+        return None
+    group = torch.arange(len(batch.rewards), device=batch.rewards.device) // n
+    halves = [torch.nonzero(group % 2 == k).flatten() for k in (0, 1)]
+    a, b = (_policy_gradient(policy, batch, rows, epsilon) for rows in halves)
+    return float(torch.nn.functional.cosine_similarity(a, b, dim=0))
 
 
 def _interpolate(params, before, after, w: float) -> None:

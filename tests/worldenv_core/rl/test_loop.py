@@ -235,8 +235,11 @@ def test_the_trust_region_bounds_the_exact_kl_of_every_update_the_first_step_inc
     for bound in (None, 0.01):
         p = copy.deepcopy(policy)
         out[bound] = ppo_update(p, torch.optim.Adam(policy_param_groups(p, 1e-3, 1e-3)), batch, epochs=3, epsilon=0.2,
-                                minibatch=4, generator=torch.Generator().manual_seed(0), max_kl=bound)
+                                minibatch=4, generator=torch.Generator().manual_seed(0), max_kl=bound,
+                                direction_groups=8)
     free, bounded = out[None], out[0.01]
+    # the two contexts' policy gradients before any step: the same for both runs, a cosine
+    assert free["direction_cosine"] == pytest.approx(bounded["direction_cosine"]) and -1 <= free["direction_cosine"] <= 1
     assert free["exact_kl"] > 0.1 and free["ppo_steps"] == 12, free
     assert bounded["exact_kl"] <= 0.01 + 1e-6 and bounded["trust_region_hit"] == 1.0, bounded
     assert bounded["first_step_kl"] > 0 and bounded["ppo_steps"] < 12 and bounded["backtracks"] >= 1
