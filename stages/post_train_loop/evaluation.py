@@ -12,7 +12,7 @@ import torch
 
 from worldenv_core.contract import TaskContract
 from worldenv_core.envs.collection import PolicyEvalJob, evaluate_policy_task
-from worldenv_core.envs.replay import PairedReplayJob, RealStart, by_start, replay_context
+from worldenv_core.envs.replay import PairedReplayJob, RealStart, by_start, placement_starts, replay_context
 from worldenv_core.envs.tasks import get_task
 from worldenv_core.manifest import StageRecord
 from worldenv_core.parallel import run_jobs
@@ -103,8 +103,6 @@ def validation_success(policy_path: str, contract: TaskContract, episodes: int, 
     placements spread evenly over the tasks trained on, the same at every evaluation and in every
     run, never a benchmark init state nor a training context (`envs.placements`). What a recipe
     is judged by: training rollouts' success moves with the contexts an iteration drew."""
-    from worldenv_core.envs.placements import placement_starts
-
     tasks = contract.resolved_task_ids()
     by_task: dict[int, list[int]] = {t: [] for t in tasks}
     for st in placement_starts(contract.suite, tasks, episodes, "validation"):

@@ -62,15 +62,14 @@ def placements(contract) -> Callable[[int], tuple[RealStart, str]]:
     """Context number k -> a fresh placement of the suite's tasks trained on (`rl.contexts=placements`):
     consecutive numbers cycle through the tasks, so an iteration's contexts spread evenly over them,
     and each number is its own placement (`envs.placements`, never a benchmark init state)."""
-    from worldenv_core.envs.placements import placement_seed
-    from worldenv_core.envs.tasks import get_task, suite_seed_id
+    from worldenv_core.envs.replay import placement_starts
+    from worldenv_core.envs.tasks import get_task
 
     tasks = contract.resolved_task_ids()
 
     def start(k: int) -> tuple[RealStart, str]:
-        task = tasks[k % len(tasks)]
-        seed = placement_seed("train", suite_seed_id(contract.suite), task, k // len(tasks))
-        return RealStart(task_id=task, seed=seed), get_task(contract.suite, task).instruction
+        st = placement_starts(contract.suite, tasks, 1, "train", first=k)[0]
+        return st, get_task(contract.suite, st.task_id).instruction
     return start
 
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from worldenv_core.contract import TaskContract
 from worldenv_core.envs.recording import attempt_seed, cached_env, expert_attempt, to_episode
-from worldenv_core.envs.replay import RealStart, restore
+from worldenv_core.envs.placements import reset_placement
 
 
 @dataclass(frozen=True)
@@ -217,7 +217,7 @@ def evaluate_policy_task(job: PolicyEvalJob) -> dict:
         if job.view_through is not None:
             runner.new_episode()
         stop = ReflectorStop(reflector, job.eta, env.instruction, runner.encoder, watch=watch) if reflector else None
-        begin = None if placement is None else functools.partial(restore, env, RealStart(task_id=job.task_id, seed=placement))
+        begin = None if placement is None else functools.partial(reset_placement, env, placement)
         traj = policy_episode(env, runner, i, 0, c.max_steps, stop_on_success=job.termination == "oracle",
                               stop_when=stop, start=begin)
         flags = [f.success for f in traj.frames] or [False]

@@ -39,18 +39,16 @@ def placement_seed(purpose: str, suite_id: int, task_id: int, index: int) -> int
     return int(seq.generate_state(1)[0] & 0x7FFF_FFFF)
 
 
-def placement_starts(suite: str, task_ids: list[int], count: int, purpose: str, first: int = 0) -> list:
-    """`count` fresh-placement starts spread evenly over `task_ids` (task-major round robin: start k
-    is of task task_ids[k % len]), numbered from `first` so that consecutive calls (one per RL
-    iteration) never repeat a placement."""
-    from worldenv_core.envs.replay import RealStart
-
+def placement_seeds(suite: str, task_ids: list[int], count: int, purpose: str, first: int = 0) -> list[tuple[int, int]]:
+    """(task id, reset seed) of `count` fresh placements spread evenly over `task_ids` (round robin:
+    placement k is of task task_ids[k % len]), numbered from `first` so that consecutive calls (one
+    per RL iteration) never repeat one. `replay.placement_starts` makes them starts."""
     if not task_ids:
-        raise ValueError("placement_starts needs at least one task id")
+        raise ValueError("fresh placements need at least one task id")
     out = []
     for k in range(first, first + count):
         task = task_ids[k % len(task_ids)]
-        out.append(RealStart(task_id=task, seed=placement_seed(purpose, suite_seed_id(suite), task, k // len(task_ids))))
+        out.append((task, placement_seed(purpose, suite_seed_id(suite), task, k // len(task_ids))))
     return out
 
 
@@ -68,3 +66,11 @@ def check_not_benchmark(suite: str, task_id: int, sim_state: np.ndarray, nq: int
         raise BenchmarkOverlap(f"the fresh placement of task {task_id} from seed {seed} is a benchmark init state "
                                f"(qpos within {gap:.2g}): it cannot be a training or validation start")
     return gap
+
+
+def reset_placement(env, seed: int):
+    """Reset `env` (a `LiberoEnv`) to the fresh placement drawn from `seed`, checked against the
+    task's benchmark init states. -> its first frame."""
+    frame = env.reset(init_state=None, seed=seed)
+    check_not_benchmark(env.task.suite, env.task.task_id, frame.sim_state, env.sim.model.nq, seed)
+    return frame

@@ -24,6 +24,7 @@ import numpy as np
 
 from worldenv_core.contract import TaskContract
 from worldenv_core.envs.libero_env import Frame, LiberoEnv
+from worldenv_core.envs.placements import placement_seeds, reset_placement
 from worldenv_core.envs.recording import cached_env
 
 
@@ -53,6 +54,11 @@ class RealStart:
     def placement(self) -> bool:
         """A fresh placement (no benchmark init state, no recorded episode)."""
         return self.episode is None and self.init_state < 0
+
+
+def placement_starts(suite: str, task_ids: list[int], count: int, purpose: str, first: int = 0) -> list[RealStart]:
+    """`count` fresh-placement starts over `task_ids` (`placements.placement_seeds`)."""
+    return [RealStart(task_id=t, seed=s) for t, s in placement_seeds(suite, task_ids, count, purpose, first)]
 
 
 def by_start(results) -> dict[str, dict]:
@@ -107,11 +113,7 @@ def restore(env: LiberoEnv, start: RealStart, tolerance: float = 1e-3) -> Frame:
     """Put `env` at the context's start and return that frame (no images). A fresh placement is
     checked against the benchmark's init states (`placements.BenchmarkOverlap` if it is one)."""
     if start.placement:
-        from worldenv_core.envs.placements import check_not_benchmark
-
-        frame = env.reset(init_state=None, seed=start.seed)
-        check_not_benchmark(env.task.suite, start.task_id, frame.sim_state, env.sim.model.nq, start.seed)
-        return frame
+        return reset_placement(env, start.seed)
     if start.episode is None:
         return env.reset(init_state=start.init_state, seed=start.seed)
     from worldenv_core.data.mcap_io import read_episode

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from worldenv_core.envs.placements import (BenchmarkOverlap, benchmark_distance, check_not_benchmark, placement_seed,
-                                         placement_starts)
+from worldenv_core.envs.placements import BenchmarkOverlap, benchmark_distance, check_not_benchmark, placement_seed
+from worldenv_core.envs.replay import placement_starts
 
 
 def test_placements_are_seeded_spread_over_tasks_and_apart_by_purpose():
@@ -18,6 +18,8 @@ def test_placements_are_seeded_spread_over_tasks_and_apart_by_purpose():
     assert placement_seed("train", 1, 0, 0) != placement_seed("train", 2, 0, 0)  # suites apart too
     with pytest.raises(ValueError, match="purpose must be one of"):
         placement_seed("test", 1, 0, 0)
+    with pytest.raises(ValueError, match="at least one task"):
+        placement_starts("libero_spatial", [], 1, "train")
 
 
 @pytest.mark.sim

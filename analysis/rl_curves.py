@@ -1,0 +1,145 @@
+"""Learning curves of LOOP runs against the real episodes they consumed, and the real route's throughput.
+
+A recipe is judged on the fixed validation set of fresh placements (`eval.validation`), never on
+the training rollouts' success, which moves with the contexts an iteration drew; both are drawn,
+with how far each update moved the policy (exact KL, RMS change of the mean action) and whether
+its batch was large enough for its direction to be the reward's (`direction_cosine`). Works on
+finished and running runs alike (a running one's history is read from its last checkpoint), and
+keeps each run's curve as JSON under results/ so it outlives the machine.
+
+    python -m analysis.rl_curves --run trust_region_seed0=outputs/libero_spatial-small/post_train_loop/<hash> \\
+        --json results/rl_recipes --figure docs/img/rl_curves_libero_spatial.png --markdown results/rl_recipes/curves.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+from worldenv_core.files import write_text_atomic
+
+# rollout time parts as real_rollout measures them (seconds summed over an iteration's rollouts)
+PARTS = ("reset", "render", "policy", "physics", "env_build")
+
+
+def read_history(work: str | Path) -> list[dict]:
+    """A run's history: training.json when it finished, else its last checkpoint's."""
+    work = Path(work)
+    if (work / "training.json").exists():
+        return json.loads((work / "training.json").read_text())
+    last = work / "checkpoints" / "last"
+    if not last.exists():
+        raise FileNotFoundError(f"{work} holds neither training.json nor a checkpoint: not a post_train_loop work dir")
+    import torch
+
+    return list(torch.load(last.resolve() / "train_state.pt", weights_only=False)["history"])
+
+
+def summarise(history: list[dict], rollouts_per_iteration: int) -> dict:
+    """Per-iteration series and the throughput of the iterations' rollouts."""
+    steps = [h for h in history if "mean_reward" in h]
+    val = [(h["step"] * rollouts_per_iteration, h["validation_success"]) for h in history if "validation_success" in h]
+    series = {k: [(h["step"], h[k]) for h in steps if k in h]
+              for k in ("mean_reward", "kept_groups", "exact_kl", "action_shift_rms", "direction_cosine", "ppo_steps",
+                        "first_step_kl")}
+    wall = sum(h.get("seconds", 0.0) for h in steps)
+    episodes = len(steps) * rollouts_per_iteration
+    parts = {p: sum(h.get(f"rollout_{p}_seconds", 0.0) for h in steps) for p in PARTS}
+    busy = sum(h.get("rollout_total_seconds", 0.0) for h in steps)
+    update = sum(h.get("update_seconds", 0.0) for h in steps)
+    return {"iterations": len(steps), "real_rl_episodes": episodes, "validation": val, **series,
+            "throughput": {"episodes_per_hour": episodes / wall * 3600 if wall else None,
+                           "hours_per_1000_episodes": wall / episodes * 1000 / 3600 if episodes else None,
+                           "iteration_seconds": wall / len(steps) if steps else None,
+                           # shares of the rollouts' worker time, and the PPO update's share of the wall time
+                           "rollout_share": {p: v / busy for p, v in parts.items()} if busy else {},
+                           "update_share_of_wall": update / wall if wall else None}}
+
+
+def plot(runs: dict[str, dict], path: str | Path, title: str = "") -> Path:
+    """Validation success against real RL episodes, and the per-iteration diagnostics, one line per run."""
+    from worldenv_core.viz import figure, save_figure
+
+    fig, axes = figure(2, 2, figsize=(11, 7.5), squeeze=False)
+    panels = [("validation success (fixed fresh placements)", "validation", "real RL episodes consumed"),
+              ("training rollouts' success (diagnostic)", "mean_reward", "iteration"),
+              ("exact KL per update", "exact_kl", "iteration"),
+              ("direction cosine (even vs odd groups)", "direction_cosine", "iteration")]
+    for ax, (name, key, xlabel) in zip(axes.flat, panels):
+        for label, s in runs.items():
+            pts = s.get(key) or []
+            if pts:
+                ax.plot([x for x, _ in pts], [y for _, y in pts], marker="o" if key == "validation" else None,
+                        ms=4, label=label)
+        ax.set_title(name, fontsize=10)
+        ax.set_xlabel(xlabel)
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=8)
+    axes[1, 1].axhline(0.0, color="grey", lw=0.8)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def markdown(runs: dict[str, dict]) -> str:
+    """One row per run: budget, validation first -> last, update size, batch direction, throughput."""
+    def fmt(x, spec=".3f"):
+        return "" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, spec)
+
+    def mean(pts):
+        return sum(y for _, y in pts) / len(pts) if pts else None
+    rows = ["| run | iterations | real RL episodes | validation (episodes: success) | mean exact KL | "
+            "mean direction cosine | episodes / hour |", "| --- | --- | --- | --- | --- | --- | --- |"]
+    for label, s in runs.items():
+        val = ", ".join(f"{x}: {y:.2f}" for x, y in s["validation"])
+        rows.append(f"| {label} | {s['iterations']} | {s['real_rl_episodes']} | {val} | {fmt(mean(s['exact_kl']), '.4f')} | "
+                    f"{fmt(mean(s['direction_cosine']))} | {fmt(s['throughput']['episodes_per_hour'], '.0f')} |")
+    return "\n".join(rows) + "\n"
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--run", action="append", required=True, metavar="NAME=WORKDIR",
+                    help="a post_train_loop work dir, named (repeatable)")
+    ap.add_argument("--rollouts", type=int, default=None,
+                    help="rollouts per iteration (default: from the work dir's run_config.json)")
+    ap.add_argument("--json", type=Path, help="a folder: each run's curve as NAME.json")
+    ap.add_argument("--figure", type=Path)
+    ap.add_argument("--markdown", type=Path)
+    ap.add_argument("--title", default="")
+    args = ap.parse_args(argv)
+    runs = {}
+    for spec in args.run:
+        if "=" not in spec:
+            ap.error(f"--run wants NAME=WORKDIR, got {spec!r}")
+        name, work = spec.split("=", 1)
+        runs[name] = summarise(read_history(work), args.rollouts or rollouts_of(work))
+    if args.json:
+        args.json.mkdir(parents=True, exist_ok=True)
+        for name, s in runs.items():
+            write_text_atomic(args.json / f"{name}.json", json.dumps(s, indent=1))
+    if args.figure:
+        plot(runs, args.figure, args.title)
+    text = markdown(runs)
+    if args.markdown:
+        args.markdown.parent.mkdir(parents=True, exist_ok=True)
+        write_text_atomic(args.markdown, text)
+    print(text)
+    return runs
+
+
+def rollouts_of(work: str | Path) -> int:
+    """Rollouts per iteration of a run: contexts x N from the resolved config post_train_loop keeps
+    in its work dir (`run_config.json`)."""
+    path = Path(work) / "run_config.json"
+    if not path.exists():
+        raise FileNotFoundError(f"{path} missing: pass --rollouts (contexts_per_iteration x n_rollouts)")
+    rl = json.loads(path.read_text())["rl"]
+    return int(rl["contexts_per_iteration"]) * int(rl["n_rollouts"])
+
+
+if __name__ == "__main__":
+    main()

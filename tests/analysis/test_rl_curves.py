@@ -1,0 +1,42 @@
+"""The learning-curve summary: validation against real episodes consumed, throughput, the table."""
+import json
+
+import pytest
+
+from analysis.rl_curves import main, markdown, read_history, summarise
+
+
+def _history():
+    h = [{"step": 0, "validation_success": 0.5, "validation_episodes": 100}]
+    for it in range(1, 5):
+        h.append({"step": it, "mean_reward": 0.4 + 0.05 * it, "kept_groups": 0.5, "exact_kl": 0.04, "direction_cosine": 0.1,
+                  "action_shift_rms": 0.01, "ppo_steps": 3, "seconds": 600.0, "update_seconds": 60.0,
+                  "rollout_total_seconds": 1000.0, "rollout_reset_seconds": 200.0, "rollout_render_seconds": 300.0,
+                  "rollout_physics_seconds": 400.0, "rollout_policy_seconds": 100.0, "rollout_env_build_seconds": 0.0})
+    h[2].update(validation_success=0.6, validation_episodes=100)
+    return h
+
+
+def test_summary_counts_real_episodes_and_splits_the_time():
+    s = summarise(_history(), rollouts_per_iteration=128)
+    assert s["iterations"] == 4 and s["real_rl_episodes"] == 512
+    assert s["validation"] == [(0, 0.5), (256, 0.6)]  # x: real RL episodes consumed when it was measured
+    t = s["throughput"]
+    assert t["episodes_per_hour"] == pytest.approx(512 / 2400 * 3600) and t["iteration_seconds"] == 600
+    assert t["rollout_share"]["physics"] == pytest.approx(0.4) and t["update_share_of_wall"] == pytest.approx(0.1)
+    assert "| r | 4 | 512 | 0: 0.50, 256: 0.60 | 0.0400 | 0.100 | 768 |" in markdown({"r": s})
+
+
+def test_the_cli_reads_a_work_dir_and_keeps_the_curve(tmp_path):
+    work = tmp_path / "work"
+    work.mkdir()
+    (work / "training.json").write_text(json.dumps(_history()))
+    (work / "run_config.json").write_text(json.dumps({"rl": {"contexts_per_iteration": 16, "n_rollouts": 8}}))
+    runs = main(["--run", f"a={work}", "--json", str(tmp_path / "kept"), "--figure", str(tmp_path / "c.png"),
+                 "--markdown", str(tmp_path / "c.md")])
+    assert runs["a"]["real_rl_episodes"] == 512 and (tmp_path / "c.png").stat().st_size > 0
+    assert json.loads((tmp_path / "kept" / "a.json").read_text())["validation"] == [[0, 0.5], [256, 0.6]]
+    with pytest.raises(FileNotFoundError, match="neither training.json nor a checkpoint"):
+        read_history(tmp_path)
+    with pytest.raises(SystemExit):
+        main(["--run", str(work)])  # no NAME=
