@@ -53,7 +53,7 @@ CONTEXTS = ("episodes", "placements")  # rl.contexts: collected episodes' starts
 # rl settings added after runs were made: at these values a run keeps the work dir it had before them
 RL_DEFAULTS = {"mid_episode_frames": 0, "verdicts": "own", "contexts": "episodes", "group_success": None,
                "max_kl": None, "kl_states": 512, "optimizer": "adam", "reset_optimizer": False, "train_scale_head": True,
-               "direction_check": False}
+               "direction_check": False, "noise_scale": 1.0}
 
 
 def validate(cfg: DictConfig) -> None:
@@ -93,6 +93,8 @@ def validate(cfg: DictConfig) -> None:
                           f"them > 0, got {cfg.rl.lr_backbone} and {cfg.rl.lr_heads}")
     if cfg.rl.max_kl is not None and not cfg.rl.max_kl > 0:
         raise ConfigError(f"rl.max_kl (the trust region) must be > 0 or null (none), got {cfg.rl.max_kl}")
+    if not cfg.rl.noise_scale > 0:
+        raise ConfigError(f"rl.noise_scale (the rollouts' sampling temperature) must be > 0, got {cfg.rl.noise_scale}")
     if cfg.rl.optimizer not in OPTIMIZERS:
         raise ConfigError(f"rl.optimizer must be one of {list(OPTIMIZERS)}, got {cfg.rl.optimizer!r}")
     try:
@@ -213,8 +215,9 @@ def run(cfg: DictConfig) -> dict:
 
         collect = (real_collector(contract, placements(contract) if fresh else starts, instructions, rl.n_rollouts,
                                   encode, rl.horizon,
-                                  read_config(policy_path)["model"], pmeta, work, cfg.eval.workers, cfg.progress)
-                   if real else imagined_collector(env, contexts, rl.n_rollouts, encode))
+                                  read_config(policy_path)["model"], pmeta, work, cfg.eval.workers, cfg.progress,
+                                  rl.noise_scale)
+                   if real else imagined_collector(env, contexts, rl.n_rollouts, encode, rl.noise_scale))
         trainer.fit([rl_phase(policy, optimizer, collect, n_contexts, rl, cfg.seed)], evaluate=evaluate,
                     evaluate_every=cfg.eval.every)
         final = trainer.save_final(work / "policy", iteration=rl.iterations)

@@ -52,10 +52,10 @@ def real_starts(paths: list[Path], mid_frames: int = 0) -> tuple[list[RealStart]
     return [st for st, _ in pairs], [i for _, i in pairs]
 
 
-def imagined_collector(env, contexts: list[Context], n_rollouts: int, encode) -> Collect:
-    """Rollouts in the imagined environment (the method)."""
+def imagined_collector(env, contexts: list[Context], n_rollouts: int, encode, noise_scale: float = 1.0) -> Collect:
+    """Rollouts in the imagined environment (the method), actions drawn at `rl.noise_scale`."""
     return lambda behaviour, picks, gens: collect_rollouts(behaviour, env, [contexts[i] for i in picks], n_rollouts,
-                                                           encode, generator=gens)
+                                                           encode, generator=gens, noise_scale=noise_scale)
 
 
 def placements(contract) -> Callable[[int], tuple[RealStart, str]]:
@@ -75,7 +75,7 @@ def placements(contract) -> Callable[[int], tuple[RealStart, str]]:
 
 def real_collector(contract, starts: list[RealStart] | Callable[[int], tuple[RealStart, str]], instructions: list[str],
                    n_rollouts: int, encode, horizon: int, model_config: dict, meta: dict, folder: Path, workers,
-                   progress: bool) -> Collect:
+                   progress: bool, noise_scale: float = 1.0) -> Collect:
     """Rollouts in the real simulator (`env=real`, the reference): the behaviour policy is saved
     under `folder` for the worker processes, one folder per iteration (a worker that ran the
     previous iteration must not reuse its cached weights), the previous one removed. `starts`:
@@ -89,7 +89,8 @@ def real_collector(contract, starts: list[RealStart] | Callable[[int], tuple[Rea
         path = save_model(folder / f"behaviour_{next(count)}", behaviour, model_config, meta)  # weights copied to CPU
         chosen = [lookup(i) for i in picks]
         return collect_real_rollouts(behaviour, path, contract, [st for st, _ in chosen], [i for _, i in chosen],
-                                     n_rollouts, encode, horizon, gens, workers=workers, progress=progress)
+                                     n_rollouts, encode, horizon, gens, workers=workers, progress=progress,
+                                     noise_scale=noise_scale)
     return collect
 
 

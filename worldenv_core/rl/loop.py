@@ -8,6 +8,7 @@ action (the sum over its action dimensions); `mask` marks the steps a rollout re
 from __future__ import annotations
 
 import dataclasses
+import math
 
 from dataclasses import dataclass, field
 
@@ -69,6 +70,7 @@ class RolloutBatch:
     mu_old: torch.Tensor | None = None
     beta_old: torch.Tensor | None = None
     timing: dict = field(default_factory=dict)  # seconds by part (physics, render, policy, ...), summed over rollouts
+    noise_scale: float = 1.0  # the actions were drawn from Laplace(mu, noise_scale * e^beta): log-probs are of that
 
 
 @torch.no_grad()
@@ -99,7 +101,7 @@ def collect_rollouts(policy, env, contexts: list, n_rollouts: int, encoder,
         a = laplace_sample(mu, beta, generator, noise_scale)
         frames.append(state.frames), proprio.append(state.proprio), actions.append(a)
         mus.append(mu), betas_all.append(beta)
-        logps.append(laplace_log_prob(a, mu, beta))  # (R, K): one log-prob per executed step
+        logps.append(laplace_log_prob(a, mu, beta + math.log(noise_scale)))  # (R, K): per executed step, as drawn
         masks.append((~state.done).float()[:, None].expand(-1, a.shape[1]))
         betas.append(beta[~state.done].mean())
         state = env.step(policy.unnormalize_actions(a), generator=generator)
@@ -111,7 +113,7 @@ def collect_rollouts(policy, env, contexts: list, n_rollouts: int, encoder,
                         actions=torch.stack(actions, 1), logp_old=torch.stack(logps, 1), mask=torch.stack(masks, 1),
                         rewards=rewards, advantages=advantages, t_end=state.t, by_reflector=state.by_reflector,
                         beta_mean=float(torch.stack(betas).mean()), mu_old=torch.stack(mus, 1),
-                        beta_old=torch.stack(betas_all, 1))
+                        beta_old=torch.stack(betas_all, 1), noise_scale=float(noise_scale))
 
 
 def merge(parts: list[RolloutBatch]) -> RolloutBatch:
@@ -132,7 +134,7 @@ def merge(parts: list[RolloutBatch]) -> RolloutBatch:
                         t_end=torch.cat([p.t_end for p in parts]), by_reflector=torch.cat([p.by_reflector for p in parts]),
                         beta_mean=sum(p.beta_mean * k for p, k in zip(parts, n)) / sum(n),
                         mu_old=cat("mu_old") if behaviour else None, beta_old=cat("beta_old") if behaviour else None,
-                        timing=timing)
+                        timing=timing, noise_scale=parts[0].noise_scale)
 
 
 def _pad_chunks(x: torch.Tensor, chunks: int) -> torch.Tensor:
@@ -230,7 +232,7 @@ def ppo_update(policy, optimizer, batch: RolloutBatch, epochs: int, epsilon: flo
         mu, beta = policy({camera: batch.frames[idx][rows, cols]}, batch.proprio[idx][rows, cols],
                           batch.instruction[idx][rows])
         logp_new = torch.zeros_like(batch.logp_old[idx])
-        logp_new[rows, cols] = laplace_log_prob(batch.actions[idx][rows, cols], mu, beta)
+        logp_new[rows, cols] = laplace_log_prob(batch.actions[idx][rows, cols], mu, beta + math.log(batch.noise_scale))
         loss, s = ppo_loss(logp_new.flatten(1), batch.logp_old[idx].flatten(1), batch.advantages[idx],
                            batch.mask[idx].flatten(1), epsilon)
         stats["loss"].append(loss.item())
@@ -280,7 +282,7 @@ def _policy_gradient(policy, batch: RolloutBatch, rows: torch.Tensor, epsilon: f
     rr, cc = live.nonzero(as_tuple=True)
     mu, beta = policy({camera: batch.frames[rows][rr, cc]}, batch.proprio[rows][rr, cc], batch.instruction[rows][rr])
     logp = torch.zeros_like(batch.logp_old[rows])
-    logp[rr, cc] = laplace_log_prob(batch.actions[rows][rr, cc], mu, beta)
+    logp[rr, cc] = laplace_log_prob(batch.actions[rows][rr, cc], mu, beta + math.log(batch.noise_scale))
     loss, _ = ppo_loss(logp.flatten(1), batch.logp_old[rows].flatten(1), batch.advantages[rows],
                        batch.mask[rows].flatten(1), epsilon)
     params = [p for p in policy.parameters() if p.requires_grad]

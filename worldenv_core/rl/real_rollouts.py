@@ -17,6 +17,7 @@ behaviour log-probabilities are computed here in one batch, so PPO's first ratio
 from __future__ import annotations
 
 import functools
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -144,7 +145,7 @@ def collect_real_rollouts(behaviour, behaviour_path: str | Path, contract: TaskC
     with torch.no_grad():
         camera = behaviour.cameras[0]
         mu, beta = behaviour.eval()({camera: frames[rr, cc]}, proprio[rr, cc], lang[rr])
-        logp[rr, cc] = laplace_log_prob(actions[rr, cc], mu, beta)
+        logp[rr, cc] = laplace_log_prob(actions[rr, cc], mu, beta + math.log(noise_scale))  # as the actions were drawn
         betas = beta.mean() if len(rr) else torch.tensor(float("nan"))
         mu_old, beta_old = torch.zeros_like(actions), torch.zeros_like(actions)
         mu_old[rr, cc], beta_old[rr, cc] = mu, beta
@@ -154,5 +155,5 @@ def collect_real_rollouts(behaviour, behaviour_path: str | Path, contract: TaskC
                         mask=mask, rewards=rewards,
                         advantages=rloo_advantages(rewards.view(len(starts), n_rollouts)).reshape(-1),
                         t_end=mask.sum((1, 2)).long(), by_reflector=success, beta_mean=float(betas),
-                        mu_old=mu_old, beta_old=beta_old,
+                        mu_old=mu_old, beta_old=beta_old, noise_scale=float(noise_scale),
                         timing={k: sum(r["seconds"][k] for r in runs) for k in runs[0]["seconds"]} if runs else {})

@@ -270,3 +270,23 @@ def test_which_parameters_rl_trains_and_with_which_optimiser():
     assert isinstance(make_optimizer(policy, "adam", 1e-4, 1e-5), torch.optim.Adam)
     with pytest.raises(ValueError, match="rl.optimizer must be one of"):
         make_optimizer(policy, "rmsprop", 1e-4, 1e-5)
+
+
+def test_rollouts_drawn_at_a_sampling_temperature_carry_its_log_probs_and_ppo_starts_at_ratio_one():
+    """noise_scale s: actions ~ Laplace(mu, s e^beta); the behaviour log-probs are of that
+    distribution and PPO's new ones too, so the first minibatch's ratios are exactly 1."""
+    import math
+
+    from worldenv_core.models.laplace import laplace_log_prob
+    from worldenv_core.rl.loop import collect_rollouts, policy_param_groups, ppo_update
+
+    policy, contexts, encoder = _policy_and_contexts()
+    calm = collect_rollouts(policy, ActionRewardEnv(), contexts, 8, encoder, torch.Generator().manual_seed(0))
+    hot = collect_rollouts(policy, ActionRewardEnv(), contexts, 8, encoder, torch.Generator().manual_seed(0), noise_scale=2.0)
+    assert hot.noise_scale == 2.0 and torch.allclose(hot.mu_old, calm.mu_old)
+    spread = lambda b: float((b.actions - b.mu_old).abs().mean())  # noqa: E731
+    assert spread(hot) == pytest.approx(2 * spread(calm), rel=1e-4)  # the same draws, twice as far
+    torch.testing.assert_close(hot.logp_old, laplace_log_prob(hot.actions, hot.mu_old, hot.beta_old + math.log(2.0)))
+    out = ppo_update(policy, torch.optim.Adam(policy_param_groups(policy, 1e-4, 1e-4)), hot, epochs=1, epsilon=0.2,
+                     minibatch=16, generator=torch.Generator().manual_seed(0))
+    assert out["approx_kl"] == pytest.approx(0.0, abs=1e-6) and out["ratio_mean"] == pytest.approx(1.0, abs=1e-5)
