@@ -12,7 +12,7 @@ export MUJOCO_GL ?= egl
 export HF_HUB_OFFLINE := 1
 export TOKENIZERS_PARALLELISM := false
 
-.PHONY: setup test test-fast faults smoke pipeline suites suites-table eval-release fidelity bench cost-model expert-table tensorboard clean
+.PHONY: setup test test-fast faults smoke pipeline rl-real suites suites-table eval-release fidelity bench cost-model expert-table tensorboard clean
 
 setup: $(STAMP)
 
@@ -101,6 +101,17 @@ eval-release: setup
 	    $(PY) -m stages.evaluate +task=$(SUITE) experiment_dir=outputs/release-$(SUITE) \
 	      policy_from=checkpoints/$(SUITE)/$$policy policy_label=$$policy $$term init_states=$(RELEASE_INIT) || exit 1; \
 	  else echo "checkpoints/$(SUITE)/$$policy: not released"; fi; done
+
+# LOOP with the true reward in the real simulator from the released SFT policy (the RL recipe's campaign,
+# results/rl_campaign.md): resumable, the same command continues from the last iteration.
+# make rl-real TASK=libero_spatial RECIPE=trust_region SEED=0 RL_ITERATIONS=40
+RECIPE ?= trust_region
+SEED ?= 0
+RL_ITERATIONS ?= 40
+rl-real: setup
+	$(PY) -m stages.post_train_loop +task=$(TASK) scale=$(SCALE) experiment_dir=$(EXP) env=real rl=$(RECIPE) \
+	  policy_from=checkpoints/$(TASK)/sft rl.iterations=$(RL_ITERATIONS) eval.every=4 eval.init_states=0 \
+	  eval.validation=100 eval.workers=2 seed=$(SEED)
 
 # The same pipeline on the tiny task and scale: minutes, proves the plumbing.
 smoke:
