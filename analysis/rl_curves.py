@@ -34,7 +34,9 @@ def read_history(work: str | Path) -> list[dict]:
         raise FileNotFoundError(f"{work} holds neither training.json nor a checkpoint: not a post_train_loop work dir")
     import torch
 
-    return list(torch.load(last.resolve() / "train_state.pt", weights_only=False)["history"])
+    from worldenv_core.training.checkpoints import TRAIN_STATE
+
+    return list(torch.load(last.resolve() / TRAIN_STATE, weights_only=False)["history"])
 
 
 def summarise(history: list[dict], rollouts_per_iteration: int) -> dict:

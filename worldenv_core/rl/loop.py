@@ -264,7 +264,7 @@ def ppo_update(policy, optimizer, batch: RolloutBatch, epochs: int, epsilon: flo
     policy.eval()
     out = {**{k: sum(v) / len(v) for k, v in stats.items()}, "ppo_steps": steps}
     if direction is not None:
-        out["direction_cosine"] = direction
+        out.update(direction)
     if probe is not None:
         out.update(probe.summary(policy))
         if max_kl is not None:
@@ -290,15 +290,42 @@ def _policy_gradient(policy, batch: RolloutBatch, rows: torch.Tensor, epsilon: f
     return torch.cat([(g if g is not None else torch.zeros_like(p)).flatten() for g, p in zip(grads, params)])
 
 
-def _direction_cosine(policy, batch: RolloutBatch, n: int, epsilon: float) -> float | None:
-    """Cosine between the policy gradients of the even and the odd groups of N rollouts."""
+def gradient_signal(sum_g: torch.Tensor, sum_sq: float, groups: int) -> dict:
+    """Signal and noise of a batch's policy gradient from its groups' gradients g_i (their sum and
+    the sum of their squared norms): with g_i = s + noise of variance sigma^2 (total over
+    parameters), E|g_i|^2 = |s|^2 + sigma^2 and E|mean g|^2 = |s|^2 + sigma^2 / B, so
+    |s|^2 = (B |mean g|^2 - mean |g_i|^2) / (B - 1). The batch's gradient points along the reward's
+    with cos^2 = |s|^2 / (|s|^2 + sigma^2 / B): `groups_for_cos_0.9` is the B at which cos = 0.9
+    (inf where no signal is measurable: the estimate of |s|^2 is <= 0)."""
+    if groups < 2:
+        raise ValueError(f"the gradient's signal needs at least 2 groups, got {groups}")
+    mean_sq = float((sum_g / groups).pow(2).sum())
+    signal = (groups * mean_sq - sum_sq / groups) / (groups - 1)
+    noise = sum_sq / groups - signal
+    snr = signal / noise if noise > 0 and signal > 0 else 0.0
+    cos = math.sqrt(signal / (signal + noise / groups)) if signal > 0 else 0.0
+    return {"gradient_signal_sq": signal, "gradient_noise_sq": noise, "gradient_cos_to_signal": cos,
+            "groups_for_cos_0.9": (0.81 / 0.19) / snr if snr > 0 else float("inf")}
+
+
+def _direction_cosine(policy, batch: RolloutBatch, n: int, epsilon: float) -> dict | None:
+    """How far the batch's direction is the reward's: the cosine between the policy gradients of
+    its even and its odd groups of N rollouts, and the signal and noise from each group's own
+    gradient (`gradient_signal`)."""
     groups = len(batch.rewards) // n
     if groups < 2:
         return None
-    group = torch.arange(len(batch.rewards), device=batch.rewards.device) // n
-    halves = [torch.nonzero(group % 2 == k).flatten() for k in (0, 1)]
-    a, b = (_policy_gradient(policy, batch, rows, epsilon) for rows in halves)
-    return float(torch.nn.functional.cosine_similarity(a, b, dim=0))
+    sum_g, sum_sq, evens, odds = None, 0.0, 0, 0
+    for k in range(groups):
+        g = _policy_gradient(policy, batch, torch.arange(k * n, (k + 1) * n, device=batch.rewards.device), epsilon)
+        sum_g = g.clone() if sum_g is None else sum_g + g
+        sum_sq += float(g.pow(2).sum())
+        if k % 2:
+            odds = odds + g
+        else:
+            evens = evens + g
+    return {"direction_cosine": float(torch.nn.functional.cosine_similarity(evens, odds, dim=0)),
+            **gradient_signal(sum_g, sum_sq, groups)}
 
 
 def _interpolate(params, before, after, w: float) -> None:

@@ -290,3 +290,24 @@ def test_rollouts_drawn_at_a_sampling_temperature_carry_its_log_probs_and_ppo_st
     out = ppo_update(policy, torch.optim.Adam(policy_param_groups(policy, 1e-4, 1e-4)), hot, epochs=1, epsilon=0.2,
                      minibatch=16, generator=torch.Generator().manual_seed(0))
     assert out["approx_kl"] == pytest.approx(0.0, abs=1e-6) and out["ratio_mean"] == pytest.approx(1.0, abs=1e-5)
+
+
+def test_the_gradients_signal_and_noise_are_recovered_from_its_groups():
+    """Groups' gradients s + noise: the estimate recovers |s|^2 and sigma^2, and the number of
+    groups at which the batch's direction is the reward's to cos 0.9; pure noise has no signal."""
+    from worldenv_core.rl.loop import gradient_signal
+
+    g = torch.Generator().manual_seed(0)
+    dim, groups = 20_000, 64
+    s = torch.zeros(dim)
+    s[:100] = 10.0  # |s|^2 = 1e4
+    grads = s + 5.0 * torch.randn(groups, dim, generator=g)  # sigma^2 = 25 x 20000 = 5e5 per group
+    out = gradient_signal(grads.sum(0), float(grads.pow(2).sum()), groups)
+    assert out["gradient_signal_sq"] == pytest.approx(1e4, rel=0.2)
+    assert out["gradient_noise_sq"] == pytest.approx(5e5, rel=0.02)
+    assert out["groups_for_cos_0.9"] == pytest.approx(0.81 / 0.19 * 5e5 / 1e4, rel=0.2)  # ~210 groups
+    noise = 5.0 * torch.randn(groups, dim, generator=g)
+    none = gradient_signal(noise.sum(0), float(noise.pow(2).sum()), groups)
+    assert abs(none["gradient_signal_sq"]) < 0.2 * 5e5 / groups and none["groups_for_cos_0.9"] > 1000
+    with pytest.raises(ValueError, match="at least 2 groups"):
+        gradient_signal(grads[0], 1.0, 1)
