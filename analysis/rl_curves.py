@@ -51,7 +51,15 @@ def summarise(history: list[dict], rollouts_per_iteration: int) -> dict:
     parts = {p: sum(h.get(f"rollout_{p}_seconds", 0.0) for h in steps) for p in PARTS}
     busy = sum(h.get("rollout_total_seconds", 0.0) for h in steps)
     update = sum(h.get("update_seconds", 0.0) for h in steps)
+    # each iteration's |s|^2 and sigma^2 estimates are unbiased but noisy: pooled over iterations they say how
+    # many mixed groups one update needs for its direction to be the reward's (rl.loop.gradient_signal)
+    sig = [h["gradient_signal_sq"] for h in steps if "gradient_signal_sq" in h]
+    noise = [h["gradient_noise_sq"] for h in steps if "gradient_noise_sq" in h]
+    pooled = (sum(sig) / len(sig), sum(noise) / len(noise)) if sig else None
+    groups_needed = (0.81 / 0.19) * pooled[1] / pooled[0] if pooled and pooled[0] > 0 else None
     return {"iterations": len(steps), "real_rl_episodes": episodes, "validation": val, **series,
+            "gradient_signal": {"iterations": len(sig), "signal_sq": pooled[0] if pooled else None,
+                                "noise_sq": pooled[1] if pooled else None, "groups_for_cos_0.9": groups_needed},
             "throughput": {"episodes_per_hour": episodes / wall * 3600 if wall else None,
                            "hours_per_1000_episodes": wall / episodes * 1000 / 3600 if episodes else None,
                            "iteration_seconds": wall / len(steps) if steps else None,
@@ -94,11 +102,13 @@ def markdown(runs: dict[str, dict]) -> str:
     def mean(pts):
         return sum(y for _, y in pts) / len(pts) if pts else None
     rows = ["| run | iterations | real RL episodes | validation (episodes: success) | mean exact KL | "
-            "mean direction cosine | episodes / hour |", "| --- | --- | --- | --- | --- | --- | --- |"]
+            "mean direction cosine | mixed groups for cos 0.9 (pooled) | episodes / hour |",
+            "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for label, s in runs.items():
         val = ", ".join(f"{x}: {y:.2f}" for x, y in s["validation"])
         rows.append(f"| {label} | {s['iterations']} | {s['real_rl_episodes']} | {val} | {fmt(mean(s['exact_kl']), '.4f')} | "
-                    f"{fmt(mean(s['direction_cosine']))} | {fmt(s['throughput']['episodes_per_hour'], '.0f')} |")
+                    f"{fmt(mean(s['direction_cosine']))} | {fmt(s['gradient_signal']['groups_for_cos_0.9'], '.0f')} | "
+                    f"{fmt(s['throughput']['episodes_per_hour'], '.0f')} |")
     return "\n".join(rows) + "\n"
 
 

@@ -14,6 +14,8 @@ def _history():
                   "rollout_total_seconds": 1000.0, "rollout_reset_seconds": 200.0, "rollout_render_seconds": 300.0,
                   "rollout_physics_seconds": 400.0, "rollout_policy_seconds": 100.0, "rollout_env_build_seconds": 0.0})
     h[2].update(validation_success=0.6, validation_episodes=100)
+    for e, (sig, noise) in zip(h[1:], ((30.0, 400.0), (-10.0, 500.0), (10.0, 450.0), (10.0, 450.0))):
+        e.update(gradient_signal_sq=sig, gradient_noise_sq=noise)
     return h
 
 
@@ -24,7 +26,9 @@ def test_summary_counts_real_episodes_and_splits_the_time():
     t = s["throughput"]
     assert t["episodes_per_hour"] == pytest.approx(512 / 2400 * 3600) and t["iteration_seconds"] == 600
     assert t["rollout_share"]["physics"] == pytest.approx(0.4) and t["update_share_of_wall"] == pytest.approx(0.1)
-    assert "| r | 4 | 512 | 0: 0.50, 256: 0.60 | 0.0400 | 0.100 | 768 |" in markdown({"r": s})
+    g = s["gradient_signal"]  # pooled: |s|^2 10, sigma^2 450 -> 4.26 x 45 groups
+    assert (g["signal_sq"], g["noise_sq"]) == (10.0, 450.0) and g["groups_for_cos_0.9"] == pytest.approx(0.81 / 0.19 * 45)
+    assert "| r | 4 | 512 | 0: 0.50, 256: 0.60 | 0.0400 | 0.100 | 192 | 768 |" in markdown({"r": s})
 
 
 def test_the_cli_reads_a_work_dir_and_keeps_the_curve(tmp_path):
