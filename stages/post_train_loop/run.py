@@ -28,7 +28,7 @@ from stages.post_train_loop.evaluation import (PairedCheck, imagined_success, re
 from stages.post_train_loop.sweep import sweep_dir, write_summary
 from stages.post_train_loop.training import (contexts_from_episodes, imagined_collector, placements, real_collector,
                                              real_starts, rl_phase)
-from worldenv_core.distributed import launched
+from worldenv_core.distributed import is_main, launched
 from worldenv_core.files import write_text_atomic
 from worldenv_core.envs.replay import RealStart, unreplayable
 from worldenv_core.imagination.env import build_imagined_env
@@ -178,7 +178,9 @@ def run(cfg: DictConfig) -> dict:
         key["rl"] = {k: v for k, v in key["rl"].items() if not (k in RL_DEFAULTS and v == RL_DEFAULTS[k])}
         work = work_dir(cfg.experiment_dir, "post_train_loop", key, stage.work_inputs())
         stage.lock(work)  # one run at a time trains into a work dir
-        write_text_atomic(work / "run_config.json", json.dumps(config, indent=1, default=str))  # what analysis reads
+        if is_main():  # the resolved config, what analysis reads; in a torchrun launch rank 0 alone writes
+            work.mkdir(parents=True, exist_ok=True)
+            write_text_atomic(work / "run_config.json", json.dumps(config, indent=1, default=str))
         optimizer = make_optimizer(policy, rl.optimizer, rl.lr_backbone, rl.lr_heads, rl.train_scale_head)
         provenance = {"policy": policy_path, "worldsim": worldsim_path, "reflector": reflector_path}
         trainer = Trainer(work, policy, {"ppo": optimizer}, model_config=read_config(policy_path)["model"],
