@@ -43,6 +43,7 @@ def summarise(history: list[dict], rollouts_per_iteration: int) -> dict:
     """Per-iteration series and the throughput of the iterations' rollouts."""
     steps = [h for h in history if "mean_reward" in h]
     val = [(h["step"] * rollouts_per_iteration, h["validation_success"]) for h in history if "validation_success" in h]
+    val_n = [h.get("validation_episodes", 0) for h in history if "validation_success" in h]
     series = {k: [(h["step"], h[k]) for h in steps if k in h]
               for k in ("mean_reward", "kept_groups", "exact_kl", "action_shift_rms", "direction_cosine", "ppo_steps",
                         "first_step_kl")}
@@ -57,7 +58,8 @@ def summarise(history: list[dict], rollouts_per_iteration: int) -> dict:
     noise = [h["gradient_noise_sq"] for h in steps if "gradient_noise_sq" in h]
     pooled = (sum(sig) / len(sig), sum(noise) / len(noise)) if sig else None
     groups_needed = (0.81 / 0.19) * pooled[1] / pooled[0] if pooled and pooled[0] > 0 else None
-    return {"iterations": len(steps), "real_rl_episodes": episodes, "validation": val, **series,
+    return {"iterations": len(steps), "real_rl_episodes": episodes, "validation": val, "validation_episodes": val_n,
+            **series,
             "gradient_signal": {"iterations": len(sig), "signal_sq": pooled[0] if pooled else None,
                                 "noise_sq": pooled[1] if pooled else None, "groups_for_cos_0.9": groups_needed},
             "throughput": {"episodes_per_hour": episodes / wall * 3600 if wall else None,
@@ -80,9 +82,13 @@ def plot(runs: dict[str, dict], path: str | Path, title: str = "") -> Path:
     for ax, (name, key, xlabel) in zip(axes.flat, panels):
         for label, s in runs.items():
             pts = s.get(key) or []
-            if pts:
-                ax.plot([x for x, _ in pts], [y for _, y in pts], marker="o" if key == "validation" else None,
-                        ms=4, label=label)
+            if pts and key == "validation":  # with the 95 % binomial interval of each point's episodes
+                err = [1.96 * math.sqrt(y * (1 - y) / n) if n else 0.0 for (_, y), n in zip(pts, s["validation_episodes"])]
+                ax.errorbar([x for x, _ in pts], [y for _, y in pts], yerr=err, marker="o", ms=4, capsize=3, label=label)
+            elif pts:
+                ax.plot([x for x, _ in pts], [y for _, y in pts], label=label)
+        if key in ("validation", "mean_reward"):
+            ax.set_ylim(0, 1)
         ax.set_title(name, fontsize=10)
         ax.set_xlabel(xlabel)
         ax.grid(alpha=0.3)
