@@ -209,8 +209,6 @@ def ppo_update(policy, optimizer, batch: RolloutBatch, epochs: int, epsilon: flo
     its direction to be the reward's, towards 1 as it grows (with a signal s and per-group noise,
     cos ~ B|s|^2 / (B|s|^2 + 2 sigma^2) over B groups, so it says how many groups would do).
     `ppo_steps` counts the steps taken."""
-    from worldenv_core.models.laplace import laplace_log_prob
-
     if target_kl is not None and not target_kl > 0:  # as ppo_loss checks epsilon: from_pack reaches here unvalidated
         raise ValueError(f"target_kl must be > 0 or None (no limit), got {target_kl}")
     if max_kl is not None and not max_kl > 0:
@@ -218,8 +216,7 @@ def ppo_update(policy, optimizer, batch: RolloutBatch, epochs: int, epsilon: flo
     if max_kl is not None and batch.mu_old is None:
         raise ValueError("max_kl needs the behaviour's Laplace parameters in the batch (mu_old, beta_old)")
     policy.train()
-    r, c = batch.mask.shape[:2]
-    camera = policy.cameras[0]
+    r = batch.mask.shape[0]
     params = [p for g in optimizer.param_groups for p in g["params"]]
     stats: dict[str, list[float]] = {"loss": [], "clip_fraction": [], "approx_kl": [], "ratio_mean": []}
     steps, shrunk, first_kl, stopped = 0, 0, None, False
@@ -227,14 +224,7 @@ def ppo_update(policy, optimizer, batch: RolloutBatch, epochs: int, epsilon: flo
     probe = _kl_probe(batch, kl_states, generator)  # drawn after the order: the minibatches are as before
     direction = _direction_cosine(policy, batch, direction_groups, epsilon) if direction_groups else None
     for idx in order:
-        live = batch.mask[idx, :, 0] > 0  # (m, C): chunks the rollout really took
-        rows, cols = live.nonzero(as_tuple=True)
-        mu, beta = policy({camera: batch.frames[idx][rows, cols]}, batch.proprio[idx][rows, cols],
-                          batch.instruction[idx][rows])
-        logp_new = torch.zeros_like(batch.logp_old[idx])
-        logp_new[rows, cols] = laplace_log_prob(batch.actions[idx][rows, cols], mu, beta + math.log(batch.noise_scale))
-        loss, s = ppo_loss(logp_new.flatten(1), batch.logp_old[idx].flatten(1), batch.advantages[idx],
-                           batch.mask[idx].flatten(1), epsilon)
+        loss, s = _rollouts_loss(policy, batch, idx, epsilon)
         stats["loss"].append(loss.item())
         for k, v in s.items():
             stats[k].append(v)
@@ -273,18 +263,24 @@ def ppo_update(policy, optimizer, batch: RolloutBatch, epochs: int, epsilon: flo
     return out
 
 
-def _policy_gradient(policy, batch: RolloutBatch, rows: torch.Tensor, epsilon: float) -> torch.Tensor:
-    """The flattened gradient of eq. 5 over `rows` at the current parameters (zeroed afterwards)."""
+def _rollouts_loss(policy, batch: RolloutBatch, rows: torch.Tensor, epsilon: float) -> tuple[torch.Tensor, dict]:
+    """Eq. 5 over the rollouts `rows`: the policy on the chunks they really took, log-probs of the
+    distribution the actions were drawn from (`noise_scale`)."""
     from worldenv_core.models.laplace import laplace_log_prob
 
-    camera = policy.cameras[0]
-    live = batch.mask[rows, :, 0] > 0
+    live = batch.mask[rows, :, 0] > 0  # (m, C): chunks the rollout really took
     rr, cc = live.nonzero(as_tuple=True)
-    mu, beta = policy({camera: batch.frames[rows][rr, cc]}, batch.proprio[rows][rr, cc], batch.instruction[rows][rr])
+    mu, beta = policy({policy.cameras[0]: batch.frames[rows][rr, cc]}, batch.proprio[rows][rr, cc],
+                      batch.instruction[rows][rr])
     logp = torch.zeros_like(batch.logp_old[rows])
     logp[rr, cc] = laplace_log_prob(batch.actions[rows][rr, cc], mu, beta + math.log(batch.noise_scale))
-    loss, _ = ppo_loss(logp.flatten(1), batch.logp_old[rows].flatten(1), batch.advantages[rows],
-                       batch.mask[rows].flatten(1), epsilon)
+    return ppo_loss(logp.flatten(1), batch.logp_old[rows].flatten(1), batch.advantages[rows],
+                    batch.mask[rows].flatten(1), epsilon)
+
+
+def _policy_gradient(policy, batch: RolloutBatch, rows: torch.Tensor, epsilon: float) -> torch.Tensor:
+    """The flattened gradient of eq. 5 over `rows` at the current parameters."""
+    loss, _ = _rollouts_loss(policy, batch, rows, epsilon)
     params = [p for p in policy.parameters() if p.requires_grad]
     grads = torch.autograd.grad(loss, params, allow_unused=True)
     return torch.cat([(g if g is not None else torch.zeros_like(p)).flatten() for g, p in zip(grads, params)])
@@ -354,24 +350,19 @@ class _KLProbe:
         policy.train(was)
         return mu, beta
 
-    def kl(self, policy) -> float:
-        """Mean exact KL(behaviour || policy) per executed step, summed over action dimensions."""
-        from worldenv_core.models.laplace import laplace_kl
-
-        mu, beta = self._forward(policy)
-        per_step = laplace_kl(self.mu_old, self.beta_old, mu, beta).sum(-1)
-        return float((per_step * self.mask).sum() / self.mask.sum().clamp(min=1))
-
     def summary(self, policy) -> dict:
-        """The iteration's move: exact KL and the RMS change of the mean action (normalised units)."""
+        """How far the policy moved: the mean exact KL(behaviour || policy) per executed step, summed
+        over action dimensions, and the RMS change of the mean action (normalised units)."""
         from worldenv_core.models.laplace import laplace_kl
 
         mu, beta = self._forward(policy)
         m = self.mask[..., None].expand_as(mu)
-        n = m.sum().clamp(min=1)
         per_step = laplace_kl(self.mu_old, self.beta_old, mu, beta).sum(-1)
         return {"exact_kl": float((per_step * self.mask).sum() / self.mask.sum().clamp(min=1)),
-                "action_shift_rms": float((((mu - self.mu_old) ** 2) * m).sum().div(n).sqrt())}
+                "action_shift_rms": float((((mu - self.mu_old) ** 2) * m).sum().div(m.sum().clamp(min=1)).sqrt())}
+
+    def kl(self, policy) -> float:
+        return self.summary(policy)["exact_kl"]
 
 
 def _kl_probe(batch: RolloutBatch, n: int, generator: torch.Generator | None) -> _KLProbe | None:
