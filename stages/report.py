@@ -18,6 +18,7 @@ from stages.post_train_loop import evaluation as post_train_loop
 from stages.train_reflector import evaluation as train_reflector
 from stages.train_worldsim import evaluation as train_worldsim
 from worldenv_core.files import write_text_atomic
+from worldenv_core.locks import waiting_lock
 from worldenv_core.manifest import Manifest, StageRecord
 from worldenv_core.report import ReportContext, markdown_table, titled
 
@@ -27,14 +28,15 @@ SECTIONS = (evaluate.section, evaluate_imagination.section, post_train_loop.sect
 
 
 def write_report(experiment_dir: str | Path, task: str) -> Path:
-    ctx = ReportContext(Manifest(experiment_dir), task, Path(experiment_dir) / "report")
-    ctx.out.mkdir(parents=True, exist_ok=True)
-    lines = [f"# {task}: experiment report"]
-    for section in SECTIONS:
-        lines += section(ctx)
-    lines += real_episodes_section(ctx)
-    lines += wall_time_section(ctx)
-    return write_text_atomic(ctx.out / "report.md", "\n".join(lines) + "\n")
+    out = Path(experiment_dir) / "report"
+    with waiting_lock(out / ".lock"):  # runs finishing together: each rebuilds from the manifest as it is then
+        ctx = ReportContext(Manifest(experiment_dir), task, out)
+        lines = [f"# {task}: experiment report"]
+        for section in SECTIONS:
+            lines += section(ctx)
+        lines += real_episodes_section(ctx)
+        lines += wall_time_section(ctx)
+        return write_text_atomic(ctx.out / "report.md", "\n".join(lines) + "\n")
 
 
 def _producer(record: StageRecord, records: list[StageRecord]) -> StageRecord:

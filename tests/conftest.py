@@ -110,7 +110,7 @@ def pytest_terminal_summary(terminalreporter, config):
     if not config.getoption("--fault-matrix"):
         return
     rows = [r for outcome in ("passed", "failed", "skipped") for r in terminalreporter.stats.get(outcome, [])
-            if r.when == "call" and "test_faults.py" in r.nodeid]
+            if r.when == "call" and "/test_faults" in "/" + r.nodeid]
     terminalreporter.write_line("")
     terminalreporter.write_line("| fault case | outcome | seconds |")
     terminalreporter.write_line("|---|---|---|")

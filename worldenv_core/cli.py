@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import sys
 from contextlib import contextmanager
 from pathlib import Path
@@ -18,7 +19,7 @@ from worldenv_core.envs.tasks import UnknownTaskError
 from worldenv_core.manifest import ArtefactError
 from worldenv_core.models.checkpoint import CheckpointError
 from worldenv_core.contract import ContractError
-from worldenv_core.errors import ConfigError
+from worldenv_core.errors import ConfigError, Interrupted
 
 # Bad settings and bad or missing artefacts: each message names what is wrong and how to fix it.
 USER_ERRORS = (ConfigError, UnknownTaskError, ArtefactError, CheckpointError, ContractError, CorruptEpisodeError)
@@ -43,6 +44,46 @@ def user_errors():
         print(f"error: {one_line(e)}", file=sys.stderr, flush=True)
         _remove_empty_run_dir()
         raise SystemExit(EXIT_USER_ERROR) from None
+    except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM (`terminate_as_interrupt`): the user's own action
+        if os.environ.get("WORLDENV_TRACEBACK"):
+            raise
+        where = getattr(e, "where", "")
+        print(f"interrupted{' ' + where if where else ''}: the same command resumes", file=sys.stderr, flush=True)
+        _remove_empty_run_dir()
+        raise SystemExit(128 + getattr(e, "signum", signal.SIGINT)) from None
+
+
+def terminate_as_interrupt() -> None:
+    """SIGTERM (a scheduler's or `kill`'s stop) ends the run as Ctrl-C does: the same line, the
+    same clean-up, exit status 143."""
+    def stop(signum, frame):
+        raise Interrupted(signum)
+
+    signal.signal(signal.SIGTERM, stop)
+
+
+def stage_of_main() -> str | None:
+    """The stage `python -m stages.<stage>` runs (None when run some other way)."""
+    spec = getattr(sys.modules.get("__main__"), "__spec__", None)
+    parts = (spec.name if spec else "").split(".")
+    return parts[1] if len(parts) == 3 and parts[0] == "stages" and parts[2] == "__main__" else None
+
+
+def check_outputs_writable(stage: str | None, overrides: list[str]) -> None:
+    """Before Hydra makes its run folder inside `experiment_dir`: the folders the stage writes can
+    be written (else one line, exit 2, nothing created). Sweeps and overrides Hydra itself will
+    refuse are left to Hydra."""
+    if stage is None or any(a in MULTIRUN_FLAGS for a in overrides):
+        return
+    from worldenv_core.stage import check_writable, compose_config
+
+    try:
+        cfg = compose_config(stage, [a for a in overrides if not a.startswith("-")])
+        targets = {"experiment_dir": cfg.experiment_dir, **({"data_dir": cfg.data_dir} if stage == "collect" else {})}
+    except Exception:  # noqa: BLE001 - a bad override: Hydra's own message names it
+        return
+    for key, path in targets.items():
+        check_writable(key, path)
 
 
 def _remove_empty_run_dir() -> None:
@@ -74,6 +115,10 @@ def multirun_flag_first(argv: list[str]) -> list[str]:
 
 
 def launch(main) -> None:
-    """A stage's `if __name__ == "__main__":` body: the Hydra main with `-m` accepted anywhere."""
+    """A stage's `if __name__ == "__main__":` body: the Hydra main with `-m` accepted anywhere,
+    SIGTERM handled as Ctrl-C, and the output folders checked writable before Hydra writes there."""
     sys.argv = multirun_flag_first(sys.argv)
+    terminate_as_interrupt()
+    with user_errors():
+        check_outputs_writable(stage_of_main(), sys.argv[1:])
     main()

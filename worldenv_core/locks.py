@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import fcntl
+from contextlib import contextmanager
 import logging
 import os
 import platform
@@ -70,3 +71,18 @@ class RunLock:
 
     def __exit__(self, *exc) -> None:
         self.release()
+
+
+@contextmanager
+def waiting_lock(path: str | os.PathLike):
+    """An exclusive lock on `path` (a lock file, created), waited for: around a short write of a
+    file several runs rebuild (the experiment's report), so that the one holding it reads and
+    writes the newest state and no write lands on another's."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)

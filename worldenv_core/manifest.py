@@ -26,6 +26,7 @@ from importlib import metadata
 from pathlib import Path
 
 from worldenv_core.errors import ArtefactError  # noqa: F401 - raised here, caught by its users
+from worldenv_core.files import write_all, write_bytes_atomic, writing
 from worldenv_core.locks import RunLock
 from worldenv_core.distributed import is_main
 
@@ -174,7 +175,7 @@ class Manifest:
         except (json.JSONDecodeError, TypeError, UnicodeDecodeError):
             stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S%f")
             aside = self.path.with_name(f"{self.path.name}.torn-{stamp}")
-            aside.write_bytes(tail)
+            write_bytes_atomic(aside, tail)  # kept whole, or (disk full) not at all and the manifest untouched
             f.truncate(cut)
             f.flush()
             os.fsync(f.fileno())
@@ -231,12 +232,18 @@ class Manifest:
         record.id = record.id or f"{record.stage}-{uuid.uuid4().hex[:12]}"
         self.root.mkdir(parents=True, exist_ok=True)
         line = (json.dumps(asdict(record), sort_keys=True, default=str) + "\n").encode()
-        with open(self.path, "a+b") as f:
+        with writing(self.path), open(self.path, "a+b") as f:
             fcntl.flock(f, fcntl.LOCK_EX)  # one complete line per writer, even under multirun
             self._repair_torn_tail(f)  # never append onto a torn line: that would lose this record too
-            os.write(f.fileno(), line)  # one write of the whole line (O_APPEND: at the end)
-            os.fsync(f.fileno())
-            fcntl.flock(f, fcntl.LOCK_UN)
+            size = os.fstat(f.fileno()).st_size
+            try:
+                write_all(f.fileno(), line)  # the whole line (O_APPEND: at the end), short writes continued
+                os.fsync(f.fileno())
+            except BaseException:  # a full disk, an interrupt: the manifest stays as it was, no part-record
+                os.ftruncate(f.fileno(), size)
+                raise
+            finally:
+                fcntl.flock(f, fcntl.LOCK_UN)
         return record
 
 

@@ -51,6 +51,11 @@ def limit_threads(threads: int) -> None:
 
 def _init_worker(parent_pid: int | None = None) -> None:
     _die_with_parent(parent_pid)
+    # Ctrl-C reaches the whole process group: the parent alone handles it (one line, the pool torn
+    # down with it), instead of every worker printing its own traceback.
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     # Episodes are the unit of parallelism; nested BLAS/torch threads would only fight over cores.
     limit_threads(1)
 

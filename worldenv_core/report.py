@@ -8,11 +8,14 @@ that run's manifest tags and metrics, never in its config."""
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from worldenv_core.manifest import Manifest, StageRecord
+from worldenv_core.manifest import ArtefactError, Manifest, StageRecord
+
+log = logging.getLogger(__name__)
 
 TERMINATIONS = ("oracle", "fixed", "reflector")
 POLICIES = ("sft", "post_trained")
@@ -54,14 +57,24 @@ class ReportContext:
         tags = {"task": self.task, **tags}
         return [r for r in self.records if r.stage == stage and all(r.tags.get(k) == v for k, v in tags.items())]
 
-    def report_json(self, record: StageRecord | None, name: str) -> dict | None:
-        """A JSON report (`kind="report"` output named `name`) a record wrote, if it is still there."""
+    def report_json(self, record: StageRecord | None, name: str, strict: bool = False) -> dict | None:
+        """A JSON report (`kind="report"` output named `name`) a record wrote, if it is still there
+        and still what the record wrote (its sha256): a file another run overwrote is never read
+        as this record's. A changed file is left out with a warning naming it (`strict`: an error)."""
         if record is None:
             return None
         for art in record.files("report"):
             if Path(art.path).name == name:
                 path = self.manifest.root / art.path
-                return json.loads(path.read_text()) if path.exists() else None
+                if not path.exists():
+                    return None
+                try:
+                    return json.loads(art.verify(self.manifest.root).read_text())
+                except ArtefactError as e:
+                    if strict:
+                        raise ArtefactError(f"{e}: it is not what record {record.id} wrote") from None
+                    log.warning("%s; left out of the report (record %s)", e, record.id)
+                    return None
         return None
 
     def copy(self, path: str, name: str | None = None, folder: str = "videos") -> str | None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 import os
 import random
+import secrets
 import tempfile
 from pathlib import Path
 
@@ -19,6 +20,11 @@ from worldenv_core.manifest import Manifest, config_hash
 
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 log = logging.getLogger("worldenv")
+# A run's own id in its Hydra run folder's name (`${now:...}-${run_id:}`): two runs started in the
+# same second never share a folder, whose files one of them would then overwrite under the other's record.
+RUN_ID = f"{os.getpid()}-{secrets.token_hex(2)}"
+if not OmegaConf.has_resolver("run_id"):
+    OmegaConf.register_new_resolver("run_id", lambda: RUN_ID)
 
 
 def available_tasks() -> list[str]:
@@ -71,6 +77,22 @@ def seed_everything(seed: int) -> None:
         torch.manual_seed(seed)
     except ImportError:
         pass
+
+
+def check_writable(key: str, path) -> None:
+    """`path` (a folder a run will create or write) can be written, checked without creating it:
+    a file made and removed in its nearest existing ancestor. Else one line naming the key."""
+    probe = Path(path).absolute()
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if not probe.is_dir():
+        raise ConfigError(f"{key} {path} is not writable: {probe} is a file, not a folder; give {key}=<a folder>")
+    try:
+        with tempfile.NamedTemporaryFile(dir=probe, prefix=".write_test"):
+            pass
+    except OSError as e:
+        raise ConfigError(f"{key} {path} is not writable ({e.strerror or e} in {probe}): give a writable "
+                          f"{key}=<folder>") from None
 
 
 def experiment(cfg: DictConfig) -> Manifest:
@@ -136,9 +158,15 @@ def resolve_policy(cfg: DictConfig, stage_run) -> str:
     """`policy_from=`: sft (the latest train_policy; also null), post_trained (the latest
     post_train_loop), a checkpoint folder, or a record id. (Not `policy=`: that name is the
     policy-architecture config group, which Hydra would try to select.)"""
+    from worldenv_core.models.checkpoint import load_checkpoint
+
     ref = cfg.policy_from
     producer = POLICY_SOURCES.get(ref, "train_policy")
-    return resolve_checkpoint(stage_run, None if ref in POLICY_SOURCES else ref, producer, cfg.task.name, cfg.scale.name)
+    path = resolve_checkpoint(stage_run, None if ref in POLICY_SOURCES else ref, producer, cfg.task.name, cfg.scale.name)
+    # built once here, before any worker starts: its config, meta and weights agree with each other
+    # and with the task (a wrong camera or width is one line now, not a traceback in every worker)
+    load_checkpoint(path, "policy", task_contract(cfg))
+    return path
 
 
 # Scale settings that choose how a result is evaluated, not what is trained (each stage's own

@@ -20,6 +20,8 @@ from worldenv_core.data.mcap_io import read_info
 from worldenv_core.data.selection import set_aside_damaged
 from worldenv_core.envs.collection import (ExpertEpisodeJob, PolicyEpisodeJob, collect_expert_episode,
                                            collect_policy_episode)
+from worldenv_core.contract import TaskContract
+from worldenv_core.files import free_bytes, human_bytes
 from worldenv_core.manifest import StageRun
 from worldenv_core.parallel import run_jobs
 from worldenv_core.stage import ConfigError, positive_int, require_task, resolve_policy, resolved, start, task_contract
@@ -51,6 +53,35 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"expert_eval.init_states is at most 50 (the benchmark has 50 per task), got {cfg.expert_eval.init_states}")
     if cfg.workers is not None:
         positive_int(cfg, "workers")
+    check_collection_size(cfg)
+
+
+# An episode frame on disk: each camera's PNG (measured 0.33-0.41 of the raw RGB bytes on LIBERO's
+# renders at PNG level 1; 0.5 leaves a margin) and the state, action and MuJoCo state records.
+PNG_SHARE, STATE_BYTES_PER_FRAME = 0.5, 3000
+
+
+def collection_bytes(cfg: DictConfig) -> int:
+    """At most about how much a collection writes: every episode of every task to the horizon."""
+    task = cfg.task
+    frame = len(task.cameras) * task.image_size ** 2 * 3 * PNG_SHARE + STATE_BYTES_PER_FRAME
+    n_tasks = len(TaskContract.from_config(task).resolved_task_ids())
+    return int(cfg.episodes_per_task * n_tasks * (task.max_steps + cfg.post_success_steps + 1) * frame)
+
+
+def check_collection_size(cfg: DictConfig) -> None:
+    """Before anything runs: the collection fits the free space of `data_dir` and the stated bound
+    `max_collection_gb` (one line naming both), instead of failing days later on a full disk."""
+    if cfg.source not in ("expert", "policy") or not cfg.episodes_per_task:
+        return
+    need, free = collection_bytes(cfg), free_bytes(cfg.data_dir)
+    what = f"{cfg.episodes_per_task} episodes per task would write up to about {human_bytes(need)}"
+    if need > cfg.max_collection_gb * 2 ** 30:
+        raise ConfigError(f"{what}, over max_collection_gb={cfg.max_collection_gb} ({human_bytes(free)} free in "
+                          f"{cfg.data_dir}): collect fewer episodes_per_task or raise max_collection_gb")
+    if free is not None and need > free:
+        raise ConfigError(f"{what}, more than the {human_bytes(free)} free in data_dir {cfg.data_dir}: free space, "
+                          "give another data_dir=<folder> or collect fewer episodes_per_task")
 
 
 def noise_scales(cfg: DictConfig) -> list:

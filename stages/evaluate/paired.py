@@ -39,7 +39,7 @@ def read_evaluation(manifest: Manifest | None, name: str) -> tuple[dict | None, 
     if rec.stage != "evaluate":
         raise ConfigError(f"{name} is a {rec.stage} record, not an evaluation")
     ctx = ReportContext(manifest, "", manifest.root / "report", records=[rec])  # no second read of the manifest
-    return ctx.report_json(rec, "results.json"), ctx.report_json(rec, "episodes.json")
+    return ctx.report_json(rec, "results.json", strict=True), ctx.report_json(rec, "episodes.json", strict=True)
 
 
 def same_policy(first: dict, other: dict) -> bool:

@@ -18,7 +18,7 @@ from stages.report import write_report
 from worldenv_core.envs.collection import PolicyEvalJob, evaluate_policy_task
 from worldenv_core.envs.tasks import check_suite, num_tasks, resolve_task_ids, suite_max_steps
 from worldenv_core.imagination.view import PARTS as VIEW_PARTS
-from worldenv_core.manifest import StageRun
+from worldenv_core.manifest import StageRun, config_hash
 from worldenv_core.models.checkpoint import read_config
 from worldenv_core.rl.termination import check_eta, reflector_eta
 from worldenv_core.parallel import run_jobs
@@ -107,6 +107,12 @@ def run(cfg: DictConfig) -> dict:
             **range_tag},
             resolved(cfg))) for m in modes}
         policy_path = [resolve_policy(cfg, s) for s in stages.values()][0]
+        digest = checkpoint_digest(policy_path)  # once for every mode: the weights are read whole
+        # one evaluation of these weights with these settings at a time (the same again would redo
+        # its work beside it); other policies or settings run side by side, each in its own run dir
+        identity = config_hash({"policy": digest, **resolved(cfg)})
+        next(iter(stages.values())).lock(manifest.root / ".locks" / f"evaluate-{identity}",
+                                         f"evaluate of {policy_path} with these settings")
         reflector_path = ([resolve_reflector(cfg, s) for s in stages.values()][0]
                           if cfg.termination in ("reflector", "all") else None)
         eta = reflector_eta(reflector_path, cfg.eta) if reflector_path else None
@@ -138,7 +144,6 @@ def run(cfg: DictConfig) -> dict:
             rows += out["rows"]
             for i, frames in out["videos"].items():
                 videos[(out["rows"][0]["task_id"], i)] = frames
-        digest = checkpoint_digest(policy_path)  # once for every mode: the weights are read whole
         for mode, stage in stages.items():
             out_dir = run_dir / mode if cfg.termination == "all" else run_dir
             summaries[mode] = record_mode(stage, mode, [r for r in rows if r["termination"] == mode], videos,

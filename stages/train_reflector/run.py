@@ -112,6 +112,7 @@ def run(cfg: DictConfig) -> dict:
             dreamed = imagined_copies(cfg, contract, worldsim, episodes)
         # named by what defines the training and its inputs, not by how it is evaluated, shown or
         # how eta is chosen: changing imagined.*, plots or eta_folds re-evaluates a finished run
+        key["held_out"] = [episode_key(p) for p in held]  # a work dir and its weights' split cannot disagree
         work = work_dir(cfg.experiment_dir, "train_reflector", key, stage.work_inputs())
         stage.lock(work)  # one run at a time trains into a work dir
         encoder = InstructionEncoder()

@@ -79,7 +79,9 @@ def run(cfg: DictConfig) -> dict:
             return done.metrics
         _, held, episodes, held_eps = load_split(paths, cfg.holdout_every, cfg.camera,
                                                  base_meta["held_out"] if base else None)
-        work = work_dir(cfg.experiment_dir, "train_worldsim", config, stage.work_inputs())
+        # named by the split too, so that a work dir and the split its weights were trained on cannot disagree
+        work = work_dir(cfg.experiment_dir, "train_worldsim", {**config, "held_out": [episode_key(p) for p in held]},
+                        stage.work_inputs())
         stage.lock(work)  # one run at a time trains into a work dir
         if base:  # its camera models and kinematics are part of what it learned
             cameras = {int(t): PinholeCamera.from_dict(c) for t, c in base_meta["cameras"].items()}

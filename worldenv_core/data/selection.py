@@ -49,14 +49,24 @@ def collected_episodes(manifest: Manifest, stage: StageRun, task: str, scale: st
 
 
 def holdout_split(paths: list[Path], every: int) -> tuple[list[Path], list[Path]]:
-    """Every `every`-th path (in sorted order) is held out; at least one is."""
-    paths = sorted(paths)
-    held = set(paths[every - 1::every]) or {paths[-1]}
-    return [p for p in paths if p not in held], [p for p in paths if p in held]
+    """Every `every`-th episode in the order of their identities (`episode_key`) is held out; at
+    least one is. By identity, not by path: the same episodes under another data_dir, copied or
+    re-rooted, hold out the same ones (sorted absolute paths interleave two collections by where
+    they live). Returns (train, held out), each in that order."""
+    order = sorted(paths, key=lambda p: (episode_key(p), str(p)))
+    keys = [episode_key(p) for p in order]
+    if len(set(keys)) != len(keys):
+        twice = sorted({k for k in keys if keys.count(k) > 1})
+        raise ArtefactError(f"{len(twice)} episode(s) are named twice among the collections read, e.g. {twice[0]}: "
+                            "one collection per source, please")
+    held = set(order[every - 1::every]) or {order[-1]}
+    return [p for p in order if p not in held], [p for p in order if p in held]
 
 
 def episode_key(path: str | Path) -> str:
-    """A machine-independent name for a collected episode: <collection>/<task>/<file>."""
+    """A machine-independent name for a collected episode: <collection>/<task>/<file>. The
+    collection folder is named by the settings that made it (`stages.collect.episodes.episode_dir`),
+    the file by its index, so the key is the episode's identity wherever the data lives."""
     return "/".join(Path(path).parts[-3:])
 
 

@@ -19,15 +19,10 @@ from hydra.utils import instantiate
 from safetensors.torch import load_file, save_file
 
 from worldenv_core.contract import TaskContract
+from worldenv_core.files import current_umask, writing
 
 FORMAT = 1
 WEIGHTS, CONFIG = "model.safetensors", "config.json"
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 
 
 class CheckpointError(ValueError):
@@ -43,14 +38,15 @@ def save_state(path: str | Path, state: dict[str, torch.Tensor], model_config: d
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    state = {k: v.detach().contiguous().cpu() for k, v in state.items()}
-    save_file(state, str(tmp / WEIGHTS))
-    os.chmod(tmp / WEIGHTS, 0o666 & ~_umask())  # safetensors writes 0600; checkpoints are shared like any output
-    (tmp / CONFIG).write_text(json.dumps({"format": FORMAT, "model": model_config, "meta": meta or {}}, indent=2))
-    if path.exists():
-        shutil.rmtree(path)
-    tmp.rename(path)
+    with writing(path, tmp):  # a full disk: one line naming the folder, and no half-written tmp left
+        tmp.mkdir(parents=True)
+        state = {k: v.detach().contiguous().cpu() for k, v in state.items()}
+        save_file(state, str(tmp / WEIGHTS))
+        os.chmod(tmp / WEIGHTS, 0o666 & ~current_umask())  # safetensors writes 0600; checkpoints are shared like any output
+        (tmp / CONFIG).write_text(json.dumps({"format": FORMAT, "model": model_config, "meta": meta or {}}, indent=2))
+        if path.exists():
+            shutil.rmtree(path)
+        tmp.rename(path)
     return path
 
 
@@ -105,11 +101,43 @@ def load_model(path: str | Path, map_location: str = "cpu") -> tuple[torch.nn.Mo
     if path.is_file():
         path = path.parent
     cfg = read_config(path)
+    check_model_config(cfg, path)
     model = instantiate(cfg["model"], _convert_="all")
-    missing, unexpected = model.load_state_dict(load_weights(path / WEIGHTS, map_location), strict=False)
+    weights = load_weights(path / WEIGHTS, map_location)
+    own = model.state_dict()
+    reshaped = [k for k, v in weights.items() if k in own and tuple(own[k].shape) != tuple(v.shape)]
+    if reshaped:
+        k = reshaped[0]
+        raise CheckpointError(f"{path}: the weights do not fit the model its {CONFIG} builds: {len(reshaped)} tensor(s) "
+                              f"of another shape, e.g. {k} {tuple(weights[k].shape)} in {WEIGHTS} against "
+                              f"{tuple(own[k].shape)} in the model (another width?); the folder's files do not "
+                              "belong together: re-run the stage that wrote it")
+    missing, unexpected = model.load_state_dict(weights, strict=False)
     if missing or unexpected:
         raise CheckpointError(f"{path}: weights do not fit the model (missing {missing[:5]}, unexpected {unexpected[:5]})")
     return model, cfg
+
+
+# What a model's config and its checkpoint's meta both say, and must say alike: the meta is what the
+# contract check reads, the config is what runs, so a disagreement would run one thing checked as another.
+AGREEING_KEYS = ("cameras", "camera", "image_size", "chunk", "action_dim", "proprio_dim")
+
+
+def check_model_config(cfg: dict, where) -> None:
+    """Every `AGREEING_KEYS` value found anywhere in the model config (its backbone included)
+    equals the meta's, where the meta records it."""
+    meta = cfg.get("meta", {})
+
+    def walk(node, trail):
+        if isinstance(node, dict):
+            for k, v in node.items():
+                if k in AGREEING_KEYS and k in meta and v != meta[k]:
+                    raise CheckpointError(f"{where}: its model config has {'.'.join([*trail, k])}={v!r} but its meta "
+                                          f"{k}={meta[k]!r}: the checkpoint contradicts itself (edited by hand?); "
+                                          "re-run the stage that wrote it")
+                walk(v, [*trail, k])
+
+    walk(cfg.get("model", {}), ["model"])
 
 
 def load_checkpoint(path: str | Path, kind: str, contract: TaskContract | None = None,

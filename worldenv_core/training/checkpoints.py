@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from worldenv_core.files import writing
 from worldenv_core.models.checkpoint import load_weights, save_model
 
 log = logging.getLogger(__name__)
@@ -26,6 +27,7 @@ class Checkpoints:
         self.dir = Path(work_dir) / "checkpoints"
         self.keep = keep
         self.extra: dict = {}  # the `extra` of the checkpoint last restored
+        self.trainer: dict | None = None  # its Trainer bookkeeping (None: none restored, or one written before it)
 
     @property
     def last(self) -> Path | None:
@@ -33,18 +35,28 @@ class Checkpoints:
         return link.resolve() if link.exists() else None
 
     def save(self, step: int, model, model_config: dict, meta: dict, optimizers: dict, history: list[dict],
-             extra: dict | None = None) -> Path:
-        """`extra`: more training state to restore (e.g. EMA weights), left in `self.extra` by `restore`."""
-        path = save_model(self.dir / f"{step:07d}", model, model_config, {**meta, "step": step})
-        state = {
-            "step": step,
-            "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
-            "rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()},
-            "history": history,
-            "extra": extra or {},
-        }
-        torch.save(state, path / (TRAIN_STATE + ".tmp"))
-        (path / (TRAIN_STATE + ".tmp")).rename(path / TRAIN_STATE)
+             extra: dict | None = None, trainer: dict | None = None) -> Path:
+        """`extra`: more training state to restore (e.g. EMA weights), left in `self.extra` by `restore`.
+        The weights and the training state are written into `<step>.staging/` and land together by
+        one rename, so an interrupt or a full disk never leaves a checkpoint without its state (nor
+        an empty temporary file: a failed save removes what it wrote)."""
+        final = self.dir / f"{step:07d}"
+        staging = final.with_name(final.name + ".staging")
+        with writing(final, staging, staging.with_name(staging.name + ".tmp")):
+            save_model(staging, model, model_config, {**meta, "step": step})
+            state = {
+                "step": step,
+                "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
+                "rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()},
+                "history": history,
+                "extra": extra or {},
+                "trainer": trainer or {},
+            }
+            torch.save(state, staging / TRAIN_STATE)
+            if final.exists():
+                shutil.rmtree(final)
+            staging.rename(final)
+        path = final
         tmp_link = self.dir / "last.tmp"
         tmp_link.unlink(missing_ok=True)
         tmp_link.symlink_to(path.name)
@@ -80,5 +92,6 @@ class Checkpoints:
         np.random.set_state(state["rng"]["numpy"])
         random.setstate(state["rng"]["python"])
         self.extra = state.get("extra", {})
+        self.trainer = state.get("trainer")
         log.info("resumed from %s (step %d)", ckpt, state["step"])
         return int(state["step"]), list(state["history"])

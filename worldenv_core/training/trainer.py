@@ -29,6 +29,7 @@ from tqdm import tqdm
 
 from worldenv_core.models.checkpoint import save_model
 from worldenv_core import distributed
+from worldenv_core.errors import Interrupted
 from worldenv_core.training.checkpoints import Checkpoints
 from worldenv_core.tracking import Tracker
 from worldenv_core.viz import plot_history
@@ -121,6 +122,7 @@ class Trainer:
             distributed.init(device)
         self.checkpoints = Checkpoints(self.work, keep)
         self.step, self.history = self.checkpoints.restore(model, optimizers)
+        self.evaluated: set[int] = set((self.checkpoints.trainer or {}).get("evaluated", []))
         self.extra = self.checkpoints.extra
         if self.parallel:
             distributed.broadcast_model(model)
@@ -131,7 +133,8 @@ class Trainer:
         if not self.main:
             return None
         return self.checkpoints.save(done, self.model, self.model_config, self.meta, self.optimizers, self.history,
-                                     extra=self.extra_state() if self.extra_state else None)
+                                     extra=self.extra_state() if self.extra_state else None,
+                                     trainer={"evaluated": sorted(self.evaluated)})
 
     def _train_step(self, phase: Phase, batch) -> dict:
         """This rank's slice of the global batch, in `accumulate` micro-batches -> the step's values,
@@ -170,35 +173,46 @@ class Trainer:
         evaluate = evaluate if self.main else None  # measurements are rank 0's
         if evaluate is not None and self.step == 0 and not self.history:
             self._record_eval(0, evaluate(0, None))
+        elif evaluate is not None and self._evaluation_cut_short(total, evaluate_every):
+            # the last sitting checkpointed this step and was stopped inside its evaluation: do it now
+            log.info("%s: step %d's evaluation did not finish in the last sitting; evaluating it now", self.desc, self.step)
+            self._record_eval(self.step, evaluate(self.step, self.checkpoints.last))
+            self.save(self.step)
         t0 = time.perf_counter()
         current, batches = None, None
-        for step in bar:
-            phase, start = _phase_at(phases, step)
-            if phase is not current:  # entering a phase, or resuming inside one
-                batches = None  # the last phase's data goes before the next one's is made
-                current, batches = phase, iter(phase.batches(step - start))
-            self.model.train()
-            running.add(**self._train_step(phase, next(batches)))
-            done = self.step = step + 1
-            running.end_step(done, total)
-            if self.overall is not None:
-                self.overall.update(1)
-            if after_step is not None:
-                after_step(done)
-            late = deadline is not None and done < total and time.monotonic() >= deadline
-            if deadline is not None and self.parallel:  # every rank stops at the same step: rank 0's clock decides
-                late = distributed.gather(late)[0]
-            last = done == total or late
-            evaluating = evaluate is not None and (last or (evaluate_every and done % evaluate_every == 0))
-            if evaluating or done % self.checkpoint_every == 0 or last:
-                path = self.save(done)
-            if evaluating:
-                self._record_eval(done, evaluate(done, path))
-                self.save(done)  # again, with the evaluation in its history
-            if late:
-                self.stopped_early = True
-                log.info("%s: past the deadline at step %d of %d; checkpointed, a re-run goes on", self.desc, done, total)
-                break
+        try:
+            for step in bar:
+                phase, start = _phase_at(phases, step)
+                if phase is not current:  # entering a phase, or resuming inside one
+                    batches = None  # the last phase's data goes before the next one's is made
+                    current, batches = phase, iter(phase.batches(step - start))
+                self.model.train()
+                running.add(**self._train_step(phase, next(batches)))
+                done = self.step = step + 1
+                running.end_step(done, total)
+                if self.overall is not None:
+                    self.overall.update(1)
+                if after_step is not None:
+                    after_step(done)
+                late = deadline is not None and done < total and time.monotonic() >= deadline
+                if deadline is not None and self.parallel:  # every rank stops at the same step: rank 0's clock decides
+                    late = distributed.gather(late)[0]
+                last = done == total or late
+                evaluating = evaluate is not None and (last or (evaluate_every and done % evaluate_every == 0))
+                if evaluating or done % self.checkpoint_every == 0 or last:
+                    path = self.save(done)
+                if evaluating:
+                    self._record_eval(done, evaluate(done, path))
+                    self.save(done)  # again, with the evaluation in its history
+                if late:
+                    self.stopped_early = True
+                    log.info("%s: past the deadline at step %d of %d; checkpointed, a re-run goes on", self.desc, done, total)
+                    break
+        except KeyboardInterrupt as e:  # Ctrl-C or SIGTERM: say how far it got; the checkpoints are complete
+            bar.close()
+            last = self.checkpoints.last
+            kept = f"its last checkpoint, step {int(last.name)}, is kept" if last else "no checkpoint was written yet"
+            raise Interrupted(getattr(e, "signum", 2), f"{self.desc} at step {self.step} of {total} ({kept})") from None
         bar.close()
         self.wall_s += time.perf_counter() - t0
         if self.parallel:
@@ -209,7 +223,15 @@ class Trainer:
             self.parallel = False
         return self.history
 
+    def _evaluation_cut_short(self, total: int, evaluate_every: int) -> bool:
+        """Whether the restored step was due an evaluation its checkpoint does not hold (a run
+        stopped during it). A checkpoint written before this bookkeeping says nothing: False."""
+        restored = self.checkpoints.trainer
+        due = self.step == total or bool(evaluate_every and self.step % evaluate_every == 0)
+        return bool(self.step and restored is not None and due and self.step not in self.evaluated)
+
     def _record_eval(self, step: int, values: dict) -> None:
+        self.evaluated.add(step)
         entry = next((h for h in reversed(self.history) if h.get("step") == step), None)
         if entry is None:
             entry = {"step": step}

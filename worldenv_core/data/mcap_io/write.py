@@ -12,6 +12,8 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from mcap.writer import CompressionType, Writer
 from mcap_protobuf.schema import build_file_descriptor_set
 
+from worldenv_core.files import writing
+
 from ..episode import Episode
 from .format import (
     ACTION_TOPIC, CAMERA_PREFIX, JSON_SCHEMAS, METADATA_NAME, REAL_PREFIX, REFLECTOR_SCHEMA, REFLECTOR_TOPIC,
@@ -99,7 +101,7 @@ def _atomic_writer(path: str | os.PathLike, chunk_size: int):
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = _tmp_path(path)
-    try:
+    with writing(path, tmp):  # any failure removes the tmp; a full disk is one line naming the file
         with open(tmp, "wb") as f:
             w = Writer(f, chunk_size=chunk_size, compression=CompressionType.ZSTD)
             w.start(profile="", library="worldenv")
@@ -108,10 +110,6 @@ def _atomic_writer(path: str | os.PathLike, chunk_size: int):
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
-        raise
 
 
 def write_episode(path: str | os.PathLike, episode: Episode, *, png_level: int = 1,
