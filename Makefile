@@ -104,13 +104,15 @@ eval-release: setup
 
 # LOOP with the true reward in the real simulator from the released SFT policy (the RL recipe's campaign,
 # results/rl_campaign.md): resumable, the same command continues from the last iteration.
-# make rl-real TASK=libero_spatial RECIPE=trust_region SEED=0 RL_ITERATIONS=40
+# make rl-real TASK=libero_spatial RECIPE=trust_region SEED=0 RL_ITERATIONS=40 EVAL_EVERY=4
+# (RECIPE=explore: 256 episodes an iteration, so RL_ITERATIONS=20 EVAL_EVERY=2 for the same budget and points)
 RECIPE ?= trust_region
 SEED ?= 0
 RL_ITERATIONS ?= 40
+EVAL_EVERY ?= 4
 rl-real: setup
 	$(PY) -m stages.post_train_loop +task=$(TASK) scale=$(SCALE) experiment_dir=$(EXP) env=real rl=$(RECIPE) \
-	  policy_from=checkpoints/$(TASK)/sft rl.iterations=$(RL_ITERATIONS) eval.every=4 eval.init_states=0 \
+	  policy_from=checkpoints/$(TASK)/sft rl.iterations=$(RL_ITERATIONS) eval.every=$(EVAL_EVERY) eval.init_states=0 \
 	  eval.validation=100 eval.workers=2 seed=$(SEED)
 
 # The same pipeline on the tiny task and scale: minutes, proves the plumbing.

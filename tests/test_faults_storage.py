@@ -24,6 +24,9 @@ from worldenv_core.training import Checkpoints
 pytestmark = pytest.mark.fault
 REPO = Path(__file__).resolve().parent.parent
 PAGE = 4096
+TINY_POLICY = ["train.steps=30", "scale_head.steps=10", "train.log_every=5", "train.checkpoint_every=10",
+               "demos_per_task=1", "policy.hidden=32", "policy.backbone.widths=[8,8,8,8]",
+               "policy.backbone.keypoints=4"]
 
 
 def cli(*args, timeout=300, cwd=REPO) -> subprocess.CompletedProcess:
@@ -117,6 +120,28 @@ def test_a_checkpoint_save_on_a_full_disk_is_one_line_and_leaves_nothing_half_ma
     assert not list(small_fs.root.glob("weights.bin*"))
 
 
+@pytest.mark.fault_full
+@pytest.mark.sim
+@pytest.mark.slow
+def test_a_disk_that_fills_during_training_is_one_line_naming_the_checkpoint(demo_experiment, tmp_path):
+    used = sum(p.stat().st_size for p in demo_experiment.rglob("*") if p.is_file())
+    fs = tmp_path / "fs"
+    if not _mount(fs, f"size={(used >> 10) + 300}k"):  # the demos fit, the tiny scale's first checkpoint does not
+        pytest.skip("mounting a small tmpfs needs root (or CAP_SYS_ADMIN) on this machine")
+    try:
+        shutil.copytree(demo_experiment, fs / "exp")
+        policy = [o for o in TINY_POLICY if not o.startswith("policy.")]
+        out = cli("stages.train_policy", "+task=tiny", "scale=tiny", *policy, f"experiment_dir={fs / 'exp'}")
+        assert out.returncode == EXIT_USER_ERROR, out.stderr[-2000:]
+        line = out.stderr.strip().splitlines()[-1]  # after the progress bar
+        assert line.startswith("error: no space left on the device writing ") and "/checkpoints/0000010 (" in line
+        assert "Traceback" not in out.stderr
+        assert not [p for p in fs.rglob("*") if p.name.endswith((".tmp", ".staging"))]
+        assert not Manifest(fs / "exp").find("train_policy")
+    finally:
+        subprocess.run(["umount", "-l", str(fs)], capture_output=True)
+
+
 # ---------------------------------------------------------------- unwritable locations
 
 
@@ -156,11 +181,6 @@ def test_a_collection_too_big_for_its_bound_or_the_disk_is_refused_naming_both(t
 
 
 # ---------------------------------------------------------------- interrupts
-
-TINY_POLICY = ["train.steps=30", "scale_head.steps=10", "train.log_every=5", "train.checkpoint_every=10",
-               "demos_per_task=1", "policy.hidden=32", "policy.backbone.widths=[8,8,8,8]",
-               "policy.backbone.keypoints=4"]
-
 
 @pytest.mark.sim
 @pytest.mark.slow

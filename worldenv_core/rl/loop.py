@@ -341,6 +341,7 @@ class _KLProbe:
     mu_old: torch.Tensor  # (P, K, A)
     beta_old: torch.Tensor
     mask: torch.Tensor  # (P, K): the steps executed
+    noise_scale: float = 1.0  # the KL is of the distributions the actions were drawn from, as PPO's ratios are
 
     @torch.no_grad()
     def _forward(self, policy):
@@ -352,12 +353,15 @@ class _KLProbe:
 
     def summary(self, policy) -> dict:
         """How far the policy moved: the mean exact KL(behaviour || policy) per executed step, summed
-        over action dimensions, and the RMS change of the mean action (normalised units)."""
+        over action dimensions, of the sampling distributions (scale `noise_scale` e^beta: a wider
+        sampling lets the mean move further for the same KL), and the RMS change of the mean action
+        (normalised units)."""
         from worldenv_core.models.laplace import laplace_kl
 
         mu, beta = self._forward(policy)
         m = self.mask[..., None].expand_as(mu)
-        per_step = laplace_kl(self.mu_old, self.beta_old, mu, beta).sum(-1)
+        shift = math.log(self.noise_scale)
+        per_step = laplace_kl(self.mu_old, self.beta_old + shift, mu, beta + shift).sum(-1)
         return {"exact_kl": float((per_step * self.mask).sum() / self.mask.sum().clamp(min=1)),
                 "action_shift_rms": float((((mu - self.mu_old) ** 2) * m).sum().div(m.sum().clamp(min=1)).sqrt())}
 
@@ -375,7 +379,8 @@ def _kl_probe(batch: RolloutBatch, n: int, generator: torch.Generator | None) ->
         rows, cols = rows[pick], cols[pick]
     return _KLProbe(frames=batch.frames[rows, cols], proprio=batch.proprio[rows, cols],
                     instruction=batch.instruction[rows], mu_old=batch.mu_old[rows, cols].detach(),
-                    beta_old=batch.beta_old[rows, cols].detach(), mask=batch.mask[rows, cols])
+                    beta_old=batch.beta_old[rows, cols].detach(), mask=batch.mask[rows, cols],
+                    noise_scale=batch.noise_scale)
 
 
 def policy_param_groups(policy, lr_backbone: float, lr_heads: float, scale_head: bool = True) -> list[dict]:

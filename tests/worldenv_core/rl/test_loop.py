@@ -251,6 +251,23 @@ def test_the_trust_region_bounds_the_exact_kl_of_every_update_the_first_step_inc
         ppo_update(policy, torch.optim.Adam(policy.parameters()), batch, 1, 0.2, 4, max_kl=0.0)
 
 
+def test_the_trust_regions_kl_is_of_the_distributions_the_actions_were_drawn_from():
+    """Drawn at a temperature (`noise_scale` k), the same move of the mean is a smaller KL between
+    the sampling distributions (scale k e^beta): about 1/k^2 of it for a small move."""
+    import dataclasses
+
+    from worldenv_core.rl.loop import _kl_probe, collect_rollouts
+
+    policy, contexts, encoder = _policy_and_contexts()
+    batch = collect_rollouts(policy, ActionRewardEnv(), contexts, 4, encoder, torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        for p in policy.parameters():
+            p.add_(1e-3 * torch.randn_like(p))
+    kls = {k: _kl_probe(dataclasses.replace(batch, noise_scale=k), 512, None).summary(policy) for k in (1.0, 2.0)}
+    assert kls[1.0]["action_shift_rms"] == kls[2.0]["action_shift_rms"] > 0
+    assert 0.15 < kls[2.0]["exact_kl"] / kls[1.0]["exact_kl"] < 0.6
+
+
 def test_which_parameters_rl_trains_and_with_which_optimiser():
     """A learning rate of 0 leaves its group out; scale_head=False keeps the Laplace scale as SFT
     fitted it; sgd and adam are the optimisers, any other name refused."""

@@ -89,3 +89,24 @@ def test_a_run_past_its_deadline_saves_evaluates_and_stops_and_a_rerun_goes_on(t
     for a, b in zip(ref_model.state_dict().values(), model.state_dict().values()):
         assert torch.equal(a, b)
     assert [h.get("loss_b") for h in history if h["step"] > 6] == [h.get("loss_b") for h in ref_history if h["step"] > 6]
+
+
+def test_an_evaluation_cut_short_is_done_when_the_run_resumes(tmp_path):
+    """A run stopped inside an evaluation (its step already checkpointed) evaluates that step
+    first thing when it resumes, instead of resuming past it without the point."""
+    seen = []
+
+    def evaluate(step, checkpoint):
+        seen.append(step)
+        if step == 4 and seen.count(4) == 1:
+            raise KeyboardInterrupt  # Ctrl-C during the evaluation at step 4
+        return {"score": float(step)}
+
+    with pytest.raises(KeyboardInterrupt) as e:
+        _run(tmp_path, steps=(3, 3), evaluate=evaluate, evaluate_every=2)
+    assert "at step 4 of 6" in str(e.value) and "last checkpoint, step 4, is kept" in str(e.value)
+    _, _, history = _run(tmp_path, steps=(3, 3), evaluate=evaluate, evaluate_every=2)
+    assert seen == [0, 2, 4, 4, 6]
+    assert {h["step"]: h["score"] for h in history if "score" in h} == {0: 0.0, 2: 2.0, 4: 4.0, 6: 6.0}
+    _, _, again = _run(tmp_path, steps=(3, 3), evaluate=evaluate, evaluate_every=2)
+    assert seen == [0, 2, 4, 4, 6] and again == history  # a finished run evaluates nothing again
