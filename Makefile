@@ -76,7 +76,7 @@ FIDELITY_NOISE ?= 1.0,0.5,2.0,3.0,4.0
 fidelity: setup
 	$(PY) -m stages.evaluate_imagination $(STAGE_ARGS) 'policies=[$(FIDELITY_POLICIES)]' 'noise_scales=[$(FIDELITY_NOISE)]'
 
-# The pipeline on the three suites of issue 23, then the cross-suite table (outputs/suites/suites.md).
+# The pipeline on the three suites (goal, object, spatial), then the cross-suite table (outputs/suites/suites.md).
 SUITES ?= libero_goal libero_object libero_spatial
 suites: setup
 	for t in $(SUITES); do $(MAKE) pipeline TASK=$$t SCALE=$(SCALE) EXP=outputs/$$t-$(SCALE) || exit 1; done

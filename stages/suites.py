@@ -7,7 +7,7 @@
 Each experiment's newest evaluations of `sft` and `post_trained` (on its own suite) are read
 from its manifest; a suite without them shows as not run. A second table says which limit holds
 where post-training does not gain, from the same manifests: the verdict on the SFT policy's paired
-replays against issue 22's targets, imagined against real success of the same actions (the world
+replays against the fidelity targets (AUROC >= 0.90, F1 >= 0.80, hack rate <= 10 %), imagined against real success of the same actions (the world
 model's drift), what LOOP raised in imagination, and the real-simulator reference (`env=real`),
 which bounds what RL can do at that budget. Writes `<out>/suites.{md,json}`.
 
@@ -59,7 +59,7 @@ def _paired(sft: dict, post: dict) -> dict:
 
 
 def _verdict_holds(h: dict) -> list[str]:
-    """The limits a paired-replay headline shows: its figures off issue 22's targets, and the world
+    """The limits a paired-replay headline shows: its figures off the fidelity targets, and the world
     model's drift (imagined against real success of the same actions)."""
     holds = []
     missed = [k for k in ("auroc", "f1", "hack_rate") if _num(h.get(k)) and not meets(k, h[k])]
@@ -163,7 +163,7 @@ def write(out: str | Path, experiments: dict[str, str]) -> Path:
     path.write_text("\n".join(["# SFT against post-trained, per suite", "", *table(rows), "",
                                "## Which limit holds", "",
                                "The verdict is the SFT policy's imagined rollouts judged against their real replays "
-                               "(issue 22's targets: AUROC >= 0.90, F1 >= 0.80, hack rate <= 10 %, imagined - real "
+                               "(the fidelity targets: AUROC >= 0.90, F1 >= 0.80, hack rate <= 10 %, imagined - real "
                                "within 5 points); the reference is the same LOOP with the real simulator as "
                                "environment (`post_train_loop env=real`).", "", *limits_table(rows)]) + "\n")
     return path
@@ -253,8 +253,8 @@ def kept_table(rows: list[dict], verdicts: list[dict]) -> list[str]:
              for v in verdicts]
     return [*out, "", "## The imagined verdict on each suite's SFT policy (paired replay)", "",
             "Its imagined rollouts' actions replayed in the real simulator from the same start: imagined against real "
-            "success of the same actions, and the share of imagined successes that fail for real (hack rate; issue "
-            "22's target <= 10 %). Closed-loop: the same policy's real success from the same contexts.", "",
+            "success of the same actions, and the share of imagined successes that fail for real (hack rate; the "
+            "fidelity target <= 10 %). Closed-loop: the same policy's real success from the same contexts.", "",
             *markdown_table(["suite", "policy", "contexts", "imagined rollouts", "imagined success",
                              "real success, same actions", "hack rate", "real closed-loop success", "limits that hold",
                              "kept run"], vrows)]

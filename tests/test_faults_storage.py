@@ -251,6 +251,13 @@ def test_a_checkpoint_whose_model_config_contradicts_its_meta_is_refused(tmp_pat
     (folder / "config.json").write_text(json.dumps(config))
     with pytest.raises(CheckpointError, match=r"model config has model.cameras=\['robot0_eye_in_hand'\] but its meta"):
         load_checkpoint(folder, "policy")
+    from stages.evaluate.run import run as evaluate  # refused by the stage before any worker or simulator starts
+
+    t0 = time.perf_counter()
+    with pytest.raises(CheckpointError, match="contradicts itself"):
+        evaluate(compose_config("evaluate", ["+task=tiny", "scale=tiny", f"experiment_dir={tmp_path / 'exp'}",
+                                             f"policy_from={folder}"]))
+    assert time.perf_counter() - t0 < 30 and not Manifest(tmp_path / "exp").records()
 
 
 def test_weights_of_another_width_are_one_line_naming_the_folder(tmp_path):

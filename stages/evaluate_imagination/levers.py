@@ -1,4 +1,4 @@
-"""The levers of issue 22 side by side: every (world model, reflector) the held-out pairs were
+"""The levers of verdict fidelity side by side: every (world model, reflector) the held-out pairs were
 judged with, its AUROC, F1 and precision (1 - hack rate) against the targets, in one plot the
 report shows under the fidelity table. A run's terminating reflector and each further reflector
 judging its pairs (`more_reflectors`) are one bar group each; the newest judgement of a pairing wins."""

@@ -13,7 +13,7 @@ dir, so a re-run resumes to the same total) and stops it, saved, at the first st
 minutes if the plan runs over; `--snapshots K` also saves the EMA model at K-1 equal
 fractions of the run (`snapshot_<step>/`), a compute curve from one run.
 
-The model-size and data curves of issue 22: `--width W` trains a *fresh* flow network of width W on
+The world model's model-size and data curves: `--width W` trains a *fresh* flow network of width W on
 the same autoencoder (its latent scales and kinematics kept, so the pack still serves it; start it with
 `rollout.chunks=0`, teacher forcing, then go on open loop from its result), and `--every N` trains on
 every N-th episode of the pack only.

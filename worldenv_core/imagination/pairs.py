@@ -3,7 +3,7 @@
 `evaluate_imagination` keeps both sides of every paired rollout at every check (the imagined
 frames and the real simulator's frames of the same actions, one `.npz` a pair, beside the
 policy variant's rows). The same pairs, made on the world model's *training* episodes
-(`contexts.source=training`), are what issue 22's first lever asks for: imagined video labelled
+(`contexts.source=training`), are verdict fidelity's first lever: imagined video labelled
 with the real outcome of the same actions, the policy's own near misses and failures included,
 and real frames of those actions beside them. `checked_episodes` turns them into episodes the
 reflector's prefix sampler reads: frame k is the check after k chunks, and its label is whether

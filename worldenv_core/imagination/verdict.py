@@ -235,7 +235,7 @@ def eta_curve(rows: list[dict], grid=ETA_GRID) -> list[dict]:
 
 
 def replay_eta(rows: list[dict], folds: int = 2, grid=ETA_GRID) -> dict:
-    """eta chosen on paired replays instead of real frames (a lever of issue 22): K-fold over
+    """eta chosen on paired replays instead of real frames (a lever of verdict fidelity): K-fold over
     contexts (a context's rollouts stay together); each fold is judged at the eta with the best
     F1 on the other folds' pairs, so the figures are never tuned on what they score. Exact: the
     rollouts were watched to the horizon, so the verdict at any eta is known."""

@@ -146,7 +146,9 @@ def load_checkpoint(path: str | Path, kind: str, contract: TaskContract | None =
     folder must hold that `kind`, made for `contract`'s shapes (`TaskContract.check`). -> (model, meta)"""
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
-    meta = read_config(path)["meta"]
+    cfg = read_config(path)
+    check_model_config(cfg, path)  # a folder that contradicts itself is named as such before any other check
+    meta = cfg["meta"]
     if meta.get("kind") != kind:
         raise CheckpointError(f"{path} holds a {meta.get('kind')!r} checkpoint, not a {kind}")
     if contract is not None:

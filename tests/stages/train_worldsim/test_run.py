@@ -173,7 +173,7 @@ def test_latent_pack_trains_open_loop_off_the_episodes_and_refuses_another_autoe
 
 def test_from_pack_trains_a_fresh_flow_network_of_another_width_on_the_same_autoencoder(demo_experiment, contract,
                                                                                         tmp_path):
-    """Issue 22's model-size curve: `--width` swaps in a new flow network, keeps the latent space."""
+    """The world model's model-size curve: `--width` swaps in a new flow network, keeps the latent space."""
     import torch
 
     from stages.train_worldsim import from_pack, latent_pack

@@ -1,5 +1,5 @@
 """The sampler override of the imagined simulator: the conditional mean is one answer whatever
-the draw, a sampled simulator depends on it (the "sampled generation" lever of issue 22)."""
+the draw, a sampled simulator depends on it (the "sampled generation" lever of verdict fidelity)."""
 import pytest
 import torch
 
