@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from worldenv_core.data.selection import episode_key, holdout_split
-from worldenv_core.manifest import ArtefactError, Manifest, StageRecord, StageRun, sha256_file
+from worldenv_core.manifest import ArtefactError, Manifest, StageRun, sha256_file
 from worldenv_core.models.checkpoint import load_weights, save_state
 from worldenv_core.report import ReportContext
 from worldenv_core.stage import compose_config
