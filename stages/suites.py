@@ -28,7 +28,7 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from stages.evaluate.evaluation import own_suite_evaluations
-from stages.evaluate.paired import compare, pooled_episodes
+from worldenv_core.evaluations import compare, pooled_episodes
 from stages.evaluate_imagination.evaluation import TARGETS, meets
 from worldenv_core.cli import user_errors
 from worldenv_core.errors import ConfigError

@@ -12,7 +12,7 @@ import numpy as np
 
 from stages.post_train_loop.evaluation import imagined_span
 from worldenv_core.manifest import StageRecord
-from worldenv_core.metrics import paired_success_test
+from worldenv_core.stats import paired_success_test
 from worldenv_core.report import POLICIES, TERMINATIONS, ReportContext, markdown_table, newest, short_run, titled
 from worldenv_core.rl.termination import StopOutcome, termination_metrics
 from worldenv_core.viz import figure, montage_video, save_figure
@@ -202,14 +202,6 @@ def other_suites_table(ctx: ReportContext) -> list[str]:
                          summary["episodes"]])
     return markdown_table(["policy", "evaluated on suite", "termination", "step limit", "success", "episodes"],
                           rows) if rows else []
-
-
-def checkpoint_name(path: str) -> str:
-    """A stage run's checkpoint by <stage>/<work dir>, any other folder (released under checkpoints/,
-    refitted, copied) by its parent and name."""
-    parts = Path(path).parts
-    work = parts[-2] if len(parts) >= 2 else ""
-    return short_run(path) if len(work) == 16 and all(c in "0123456789abcdef" for c in work) else "/".join(parts[-2:])
 
 
 def view_table(ctx: ReportContext) -> list[str]:

@@ -16,8 +16,8 @@ import argparse
 import json
 from pathlib import Path
 
-from stages.evaluate.evaluation import checkpoint_name
-from stages.evaluate.paired import read_evaluation
+from worldenv_core.evaluations import checkpoint_name
+from worldenv_core.evaluations import read_evaluation
 from worldenv_core.cli import user_errors
 from worldenv_core.errors import ConfigError
 from worldenv_core.files import write_text_atomic

@@ -31,12 +31,12 @@ import textwrap
 import numpy as np
 
 from stages.evaluate.odd_one_out import odd_one_out
-from stages.evaluate.paired import emit, paired_gain, pooled_policies
-from stages.evaluate.seeds import permutation_p
+from worldenv_core.evaluations import emit, paired_gain, pooled_policies
+from worldenv_core.stats import permutation_p
 from worldenv_core.cli import user_errors
 from worldenv_core.errors import ConfigError
 from worldenv_core.manifest import Manifest
-from worldenv_core.metrics import fair_coin_tail
+from worldenv_core.stats import fair_coin_tail
 from worldenv_core.report import markdown_table
 
 

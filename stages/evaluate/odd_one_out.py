@@ -18,7 +18,7 @@ import argparse
 
 import numpy as np
 
-from stages.evaluate.paired import emit, pooled_policies
+from worldenv_core.evaluations import emit, pooled_policies
 from worldenv_core.cli import user_errors
 from worldenv_core.errors import ConfigError
 from worldenv_core.manifest import Manifest

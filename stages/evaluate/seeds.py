@@ -18,31 +18,16 @@ McNemar p are listed too: what one seed alone would have claimed.
 from __future__ import annotations
 
 import argparse
-import itertools
 import math
 
 import numpy as np
 
-from stages.evaluate.paired import emit, pooled_policies
+from worldenv_core.evaluations import emit, pooled_policies
 from worldenv_core.cli import user_errors
 from worldenv_core.errors import ConfigError
 from worldenv_core.manifest import Manifest
-from worldenv_core.metrics import paired_success_test
+from worldenv_core.stats import paired_success_test, permutation_p
 from worldenv_core.report import markdown_table
-
-
-def permutation_p(a: np.ndarray, b: np.ndarray, greater: bool = False) -> float:
-    """Exact p of the difference in means over every relabelling of the pooled values: two-sided, or with
-    `greater` one-sided (how often a relabelled `a` beats `b` by at least as much as the real one does)."""
-    pooled = np.concatenate([a, b])
-    if math.comb(len(pooled), len(a)) > 200_000:
-        raise ConfigError(f"{math.comb(len(pooled), len(a))} relabellings of {len(pooled)} policies: too many to enumerate")
-    picked = np.array([pooled[list(s)].sum() for s in itertools.combinations(range(len(pooled)), len(a))])
-    diffs = picked / len(a) - (pooled.sum() - picked) / len(b)
-    observed = a.mean() - b.mean()
-    if not greater:
-        diffs, observed = np.abs(diffs), abs(observed)
-    return float((diffs >= observed - 1e-12).mean())
 
 
 def compare_procedures(policies: dict[str, list[dict]], start: dict | None = None) -> dict:

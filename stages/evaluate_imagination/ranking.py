@@ -18,13 +18,13 @@ from pathlib import Path
 
 import numpy as np
 
-from stages.evaluate.evaluation import checkpoint_name
-from stages.evaluate.paired import pooled_episodes, read_evaluation
+from worldenv_core.evaluations import checkpoint_name
+from worldenv_core.evaluations import pooled_episodes, read_evaluation
 from worldenv_core.cli import user_errors
 from worldenv_core.errors import ConfigError
 from worldenv_core.files import write_text_atomic
 from worldenv_core.imagination.verdict import as_judged_by, context_key, judge, misattributed
-from worldenv_core.metrics import spearman
+from worldenv_core.stats import spearman
 from worldenv_core.viz import figure, save_figure
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stages.evaluate.paired import compare, pooled_episodes
+from worldenv_core.evaluations import compare, pooled_episodes
 from stages.evaluate_imagination.run import pairs_key
 from stages.post_train_loop.sweep import write_summary
 from worldenv_core.imagination.verdict import verdict_metrics

@@ -18,7 +18,7 @@ from worldenv_core.contract import TaskContract
 from worldenv_core.data.selection import episode_key
 from worldenv_core.imagination.simulator import ImaginedSimulator, rendered_copy, replay_from_start
 from worldenv_core.manifest import ArtefactError
-from worldenv_core.metrics import binary_metrics
+from worldenv_core.stats import binary_metrics
 from worldenv_core.models.checkpoint import read_config
 from worldenv_core.report import ReportContext, markdown_table, short_run, titled
 from worldenv_core.rl.termination import (StopOutcome, check_steps, first_stop, first_success, success_labels,

@@ -27,7 +27,8 @@ import numpy as np
 import torch
 
 from worldenv_core.imagination.env import Context, ImaginedEnv, StepResult
-from worldenv_core.metrics import binary_metrics, cluster_bootstrap_ci, psnr, spearman, ssim
+from worldenv_core.stats import binary_metrics, cluster_bootstrap_ci, spearman
+from worldenv_core.metrics import psnr, ssim
 
 
 @dataclass

@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from stages.evaluate.seeds import compare_procedures, main, permutation_p
+from stages.evaluate.seeds import compare_procedures, main
 from tests.stages.test_suites import _kept_evaluation
 from worldenv_core.errors import ConfigError
 
@@ -13,16 +13,6 @@ KEYS = [(t, i) for t in range(2) for i in range(50)]
 
 def outcomes(successes):
     return {k: bool(s) for k, s in zip(KEYS, successes)}
-
-
-def test_the_permutation_p_is_exact_over_every_relabelling():
-    # 3 vs 3 fully separated: only the observed split and its mirror are as extreme, 2 of C(6, 3) = 20
-    assert permutation_p(np.array([0.7, 0.8, 0.9]), np.array([0.1, 0.2, 0.3])) == pytest.approx(2 / 20)
-    assert permutation_p(np.array([0.7, 0.8, 0.9]), np.array([0.1, 0.2, 0.3]), greater=True) == pytest.approx(1 / 20)
-    assert permutation_p(np.array([0.1, 0.2, 0.3]), np.array([0.7, 0.8, 0.9]), greater=True) == 1.0
-    assert permutation_p(np.array([0.5, 0.5]), np.array([0.5, 0.5])) == 1.0
-    with pytest.raises(ConfigError, match="too many"):
-        permutation_p(np.zeros(20), np.zeros(20))
 
 
 def test_seeds_that_each_beat_the_start_are_no_better_than_the_other_procedures_seeds():

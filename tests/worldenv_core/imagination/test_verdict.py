@@ -11,7 +11,7 @@ import torch
 from tests.worldenv_core.imagination.test_recording import tiny_policy
 from worldenv_core.imagination.verdict import (evaluator_metrics, frame_metrics, imagine, judge, pair, per_task,
                                                replay_eta, terminal_reward, verdict_metrics)
-from worldenv_core.metrics import spearman
+from worldenv_core.stats import spearman
 from worldenv_core.rl.loop import collect_rollouts
 
 

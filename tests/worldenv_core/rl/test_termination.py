@@ -3,7 +3,7 @@ import math
 
 import numpy as np
 
-from worldenv_core.metrics import auroc, binary_metrics
+from worldenv_core.stats import auroc, binary_metrics
 from worldenv_core.rl.termination import (StopOutcome, best_eta, check_steps, episode_outcomes, first_stop, first_success,
                                           success_labels, termination_metrics)
 

@@ -3,7 +3,10 @@ import math
 
 import pytest
 
-from worldenv_core.metrics import paired_difference_ci, paired_success_test, spearman
+import numpy as np
+
+from worldenv_core.errors import ConfigError
+from worldenv_core.stats import paired_difference_ci, paired_success_test, permutation_p, spearman
 
 
 def test_paired_success_test_by_hand():
@@ -24,7 +27,7 @@ def test_paired_success_test_without_disagreement_is_uninformative():
 def test_cluster_bootstrap_resamples_whole_clusters():
     import numpy as np
 
-    from worldenv_core.metrics import cluster_bootstrap_ci
+    from worldenv_core.stats import cluster_bootstrap_ci
 
     values = np.array([0.0, 0.0, 1.0, 1.0])
     # two clusters that each agree within: a resample's mean is 0, 0.5 or 1, never 0.25
@@ -53,3 +56,13 @@ def test_paired_difference_ci_by_hand():
     assert paired_difference_ci(5, 5, 100, level=0.99)[1] > paired_difference_ci(5, 5, 100)[1]
     with pytest.raises(ValueError, match="at least one episode"):
         paired_difference_ci(0, 0, 0)
+
+
+def test_the_permutation_p_is_exact_over_every_relabelling():
+    # 3 vs 3 fully separated: only the observed split and its mirror are as extreme, 2 of C(6, 3) = 20
+    assert permutation_p(np.array([0.7, 0.8, 0.9]), np.array([0.1, 0.2, 0.3])) == pytest.approx(2 / 20)
+    assert permutation_p(np.array([0.7, 0.8, 0.9]), np.array([0.1, 0.2, 0.3]), greater=True) == pytest.approx(1 / 20)
+    assert permutation_p(np.array([0.1, 0.2, 0.3]), np.array([0.7, 0.8, 0.9]), greater=True) == 1.0
+    assert permutation_p(np.array([0.5, 0.5]), np.array([0.5, 0.5])) == 1.0
+    with pytest.raises(ConfigError, match="too many"):
+        permutation_p(np.zeros(20), np.zeros(20))
