@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from stages.post_train_loop.evaluation import imagined_span
+from worldenv_core.evaluations import checkpoint_name
 from worldenv_core.manifest import StageRecord
 from worldenv_core.stats import paired_success_test
 from worldenv_core.report import POLICIES, TERMINATIONS, ReportContext, markdown_table, newest, short_run, titled

@@ -101,9 +101,13 @@ def test_bad_checkpoints_give_clear_errors(tmp_path, contract):
     save_model(tmp_path / "ckpt6", model, small_config(action_dim=6), {"kind": "policy", "action_dim": 6})
     with pytest.raises(ContractError, match="action_dim=6.*has action_dim=7"):
         load_checkpoint(tmp_path / "ckpt6", "policy", contract())
-    save_model(tmp_path / "cams", model, small_config(action_dim=6), {"kind": "policy", "cameras": ["wrist"]})
+    wrist = small_config(action_dim=6, cameras=["wrist"])  # made for another camera, consistently
+    save_model(tmp_path / "cams", instantiate(wrist), wrist, {"kind": "policy", "cameras": ["wrist"]})
     with pytest.raises(ContractError, match=r"cameras \['wrist'\].*\['agentview'\]"):
         load_checkpoint(tmp_path / "cams", "policy", contract())
+    save_model(tmp_path / "edited", model, small_config(action_dim=6), {"kind": "policy", "cameras": ["wrist"]})
+    with pytest.raises(CheckpointError, match=r"model.cameras=\['agentview'\] but its meta cameras=\['wrist'\]"):
+        load_checkpoint(tmp_path / "edited", "policy", contract())  # one that contradicts itself: named as such
     save_model(tmp_path / "wm", model, small_config(action_dim=6), {"kind": "worldsim"})
     with pytest.raises(CheckpointError, match="not a policy"):
         load_checkpoint(tmp_path / "wm", "policy")
