@@ -40,16 +40,11 @@ class TaskContract:
                    action_dim=int(task.action_dim), proprio_dim=int(task.proprio_dim), max_steps=int(task.max_steps),
                    control_freq=float(task.control_freq))
 
-    def resolved_task_ids(self) -> list[int]:
-        from worldenv_core.envs.tasks import resolve_task_ids
-
-        return resolve_task_ids(self.suite, list(self.task_ids) if self.task_ids is not None else None)
-
-    def on_suite(self, suite: str, max_steps: int | None = None) -> "TaskContract":
-        """The same shapes on another registered suite with the same task ids (LIBERO-PRO variants)."""
-        from worldenv_core.envs.tasks import suite_max_steps
-
-        return dataclasses.replace(self, suite=suite, max_steps=int(max_steps or suite_max_steps(suite)))
+    def on_suite(self, suite: str, max_steps: int) -> "TaskContract":
+        """The same shapes on another registered suite with the same task ids (LIBERO-PRO variants),
+        at that suite's step limit (`envs.tasks.suite_max_steps`: the caller looks it up, so the
+        contract depends on nothing above it)."""
+        return dataclasses.replace(self, suite=suite, max_steps=int(max_steps))
 
     def meta(self) -> dict:
         """What every checkpoint records of the contract it was trained under."""

@@ -15,12 +15,12 @@ from omegaconf import DictConfig, ListConfig
 from stages.collect.episodes import episode_dir, expert_code_hash  # noqa: F401 - part of the stage's API
 from stages.collect.evaluation import expert_eval, preview
 from stages.collect.lerobot import export_collection, import_dataset
-from worldenv_core.contract import TaskContract
 from worldenv_core.data.mcap_io import read_info
 from worldenv_core.data.selection import set_aside_damaged
 from worldenv_core.envs.collection import (ExpertEpisodeJob, PolicyEpisodeJob, collect_expert_episode,
                                            collect_policy_episode)
 from worldenv_core.contract import TaskContract
+from worldenv_core.envs.tasks import contract_task_ids, resolve_task_ids
 from worldenv_core.files import free_bytes, human_bytes
 from worldenv_core.manifest import StageRun
 from worldenv_core.parallel import run_jobs
@@ -65,7 +65,7 @@ def collection_bytes(cfg: DictConfig) -> int:
     """At most about how much a collection writes: every episode of every task to the horizon."""
     task = cfg.task
     frame = len(task.cameras) * task.image_size ** 2 * 3 * PNG_SHARE + STATE_BYTES_PER_FRAME
-    n_tasks = len(TaskContract.from_config(task).resolved_task_ids())
+    n_tasks = len(resolve_task_ids(task.suite, task.task_ids))
     return int(cfg.episodes_per_task * n_tasks * (task.max_steps + cfg.post_success_steps + 1) * frame)
 
 
@@ -94,7 +94,7 @@ def run(cfg: DictConfig) -> dict:
     manifest = start(cfg, validate)
     task = cfg.task
     contract = task_contract(cfg)
-    task_ids = contract.resolved_task_ids()
+    task_ids = contract_task_ids(contract)
     run_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else manifest.root
     tags = {"task": task.name, "scale": cfg.scale.name, "source": cfg.source}
     summary: dict = {}

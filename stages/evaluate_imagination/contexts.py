@@ -12,6 +12,7 @@ from pathlib import Path
 
 import torch
 
+from worldenv_core.envs.tasks import contract_task_ids
 from worldenv_core.contract import TaskContract
 from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.data.selection import MissingEpisodesError, collected_episodes, episode_key
@@ -71,7 +72,7 @@ def build_contexts(cfg, contract: TaskContract, held: list[Path]) -> tuple[list[
     prefix does not replay to its recorded state is dropped here, before any imagination (its
     pairs could not be judged). -> (contexts, the dropped ones' errors)."""
     c, camera = cfg.contexts, contract.cameras[0]
-    tasks = contract.resolved_task_ids()
+    tasks = contract_task_ids(contract)
     jobs = [StartJob(contract, RealStart(task_id=t, init_state=i)) for t in tasks for i in range(c.init_states)]
     out = []
     for r in sorted(run_jobs(start_frame, jobs, workers=cfg.workers, launcher=cfg.launcher, desc="context frames",

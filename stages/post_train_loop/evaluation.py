@@ -13,7 +13,7 @@ import torch
 from worldenv_core.contract import TaskContract
 from worldenv_core.envs.collection import PolicyEvalJob, evaluate_policy_task
 from worldenv_core.envs.replay import PairedReplayJob, RealStart, by_start, placement_starts, replay_context
-from worldenv_core.envs.tasks import get_task
+from worldenv_core.envs.tasks import contract_task_ids, get_task
 from worldenv_core.manifest import StageRecord
 from worldenv_core.parallel import run_jobs
 from worldenv_core.report import ReportContext, markdown_table, short_run, titled
@@ -92,7 +92,7 @@ def record_imagined(policy, env, contexts: list[Context], n_contexts: int, contr
 def real_success(policy_path: str, contract: TaskContract, init_states: int, workers, progress: bool) -> float:
     """Success in the real simulator (oracle termination) on the first benchmark init states."""
     jobs = [PolicyEvalJob(policy_path=policy_path, contract=contract, task_id=t, init_ids=tuple(range(init_states)),
-                          termination="oracle") for t in contract.resolved_task_ids()]
+                          termination="oracle") for t in contract_task_ids(contract)]
     rows = [r for out in run_jobs(evaluate_policy_task, jobs, workers=workers, desc="real-sim eval",
                                   progress=progress, unit="task") for r in out["rows"]]
     return sum(r["success"] for r in rows) / len(rows)
@@ -103,7 +103,7 @@ def validation_success(policy_path: str, contract: TaskContract, episodes: int, 
     placements spread evenly over the tasks trained on, the same at every evaluation and in every
     run, never a benchmark init state nor a training context (`envs.placements`). What a recipe
     is judged by: training rollouts' success moves with the contexts an iteration drew."""
-    tasks = contract.resolved_task_ids()
+    tasks = contract_task_ids(contract)
     by_task: dict[int, list[int]] = {t: [] for t in tasks}
     for st in placement_starts(contract.suite, tasks, episodes, "validation"):
         by_task[st.task_id].append(st.seed)

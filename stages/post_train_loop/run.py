@@ -28,6 +28,7 @@ from stages.post_train_loop.evaluation import (PairedCheck, imagined_success, re
 from stages.post_train_loop.sweep import sweep_dir, write_summary
 from stages.post_train_loop.training import (contexts_from_episodes, imagined_collector, placements, real_collector,
                                              real_starts, rl_phase)
+from worldenv_core.envs.tasks import contract_task_ids
 from worldenv_core.distributed import is_main, launched
 from worldenv_core.files import write_text_atomic
 from worldenv_core.envs.replay import RealStart, unreplayable
@@ -125,7 +126,7 @@ def run(cfg: DictConfig) -> dict:
         encoder = InstructionEncoder()
         encode = lambda s: encoder(s).to(device)  # noqa: E731
         policy, pmeta = load_checkpoint(policy_path, "policy", contract, device=str(device))
-        task_ids = set(contract.resolved_task_ids())  # task.task_ids=[...] trains on those tasks' contexts only
+        task_ids = set(contract_task_ids(contract))  # task.task_ids=[...] trains on those tasks' contexts only
         fresh = rl.contexts == "placements"  # no collected episode needed: every context a new scene
         episodes = [] if fresh else collected_episodes(manifest, stage, contract.name, cfg.scale.name, cfg.expert_only)
         if not real:
@@ -236,7 +237,7 @@ def run(cfg: DictConfig) -> dict:
                               "imagined_success": by_step("imagined_success"),
                               # evaluation: monitoring only, never a training signal
                               "real_episodes": len(by_step("real_success")) * cfg.eval.init_states
-                              * len(contract.resolved_task_ids()) + sum(h.get("paired_episodes", 0) for h in history)
+                              * len(contract_task_ids(contract)) + sum(h.get("paired_episodes", 0) for h in history)
                               + sum(h.get("validation_episodes", 0) for h in history),
                               "paired_hack_rate": by_step("paired_hack_rate"),
                               "paired_imagined_mixed": by_step("paired_imagined_mixed"),

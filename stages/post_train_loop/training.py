@@ -14,6 +14,7 @@ from pathlib import Path
 import torch
 
 from worldenv_core import distributed
+from worldenv_core.envs.tasks import contract_task_ids
 from worldenv_core.envs.replay import RealStart
 from worldenv_core.imagination.env import Context, mid_episode_frames
 from worldenv_core.models.checkpoint import save_model
@@ -65,7 +66,7 @@ def placements(contract) -> Callable[[int], tuple[RealStart, str]]:
     from worldenv_core.envs.replay import placement_starts
     from worldenv_core.envs.tasks import get_task
 
-    tasks = contract.resolved_task_ids()
+    tasks = contract_task_ids(contract)
 
     def start(k: int) -> tuple[RealStart, str]:
         st = placement_starts(contract.suite, tasks, 1, "train", first=k)[0]

@@ -2,6 +2,7 @@
 import pytest
 
 from worldenv_core.contract import ContractError, TaskContract
+from worldenv_core.envs.tasks import suite_max_steps
 from worldenv_core.stage import compose_config, require_task
 
 
@@ -12,7 +13,7 @@ def test_built_once_from_the_task_config_with_the_derived_step_limit():
     assert contract.cameras == ("agentview",) and contract.action_dim == 7
     assert contract.meta() == {"task": "libero_goal_swap", "suite": "libero_goal_swap", "image_size": contract.image_size,
                                "chunk": 8, "action_dim": 7, "proprio_dim": 7}
-    moved = contract.on_suite("libero_goal")
+    moved = contract.on_suite("libero_goal", suite_max_steps("libero_goal"))
     assert moved.suite == "libero_goal" and moved.max_steps == 300 and moved.image_size == contract.image_size
 
 

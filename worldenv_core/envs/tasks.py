@@ -133,6 +133,11 @@ def resolve_task_ids(suite: str, task_ids) -> list[int]:
     return ids
 
 
+def contract_task_ids(contract) -> list[int]:
+    """The task ids a `TaskContract` covers (its `task_ids`, or every task of its suite)."""
+    return resolve_task_ids(contract.suite, list(contract.task_ids) if contract.task_ids is not None else None)
+
+
 @lru_cache(maxsize=64)
 def init_states(suite: str, task_id: int) -> np.ndarray:
     """The benchmark's fixed initial MuJoCo states for a task, shape (50, state_dim)."""

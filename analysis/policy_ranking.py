@@ -5,7 +5,7 @@ benchmark's init states), with the rank correlation and a 95 % bootstrap interva
 episodes. The real success of the imagined actions themselves (the pairs) is ranked against the
 evaluations too: how far the run's contexts can rank policies at all, whatever imagination says.
 
-    python -m stages.evaluate_imagination.ranking results/libero_goal/evaluate_imagination-<id> \\
+    python -m analysis.policy_ranking results/libero_goal/evaluate_imagination-<id> \\
         --real results/libero_goal/evaluate-24436df546de results/libero_goal/evaluate-6bc9ec720a68 ...
 """
 

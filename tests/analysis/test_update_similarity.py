@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from stages.post_train_loop.update_similarity import cosines, main, weight_update
+from analysis.update_similarity import cosines, main, weight_update
 from worldenv_core.models.checkpoint import save_state
 
 LINEAR = {"_target_": "torch.nn.Linear", "in_features": 3, "out_features": 2}

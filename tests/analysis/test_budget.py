@@ -3,7 +3,7 @@ import json
 import numpy as np
 import pytest
 
-from stages.evaluate.budget import gains_by_budget, main
+from analysis.budget import gains_by_budget, main
 from tests.stages.test_suites import _kept_evaluation
 from worldenv_core.errors import ConfigError
 

@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from stages.evaluate.seeds import compare_procedures, main
+from analysis.seeds import compare_procedures, main
 from tests.stages.test_suites import _kept_evaluation
 from worldenv_core.errors import ConfigError
 

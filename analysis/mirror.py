@@ -1,7 +1,7 @@
 """Does an update gain by its direction or by its size? A move and its mirror against their start.
 
 A policy moved off its start by an update d, and the start moved by -d (`python -m
-stages.post_train_loop.random_update --mirror`), evaluated on the same episodes as the start. Near
+analysis.random_update --mirror`), evaluated on the same episodes as the start. Near
 the start the success of a move is f(d) ~ f(0) + g.d + d'Hd/2: the first-order part flips sign with
 the move, the second-order part does not. So half the difference of the two gains estimates what the
 update's direction adds (the part a reward can point; a random direction's is zero on average), and
@@ -16,7 +16,7 @@ procedure: per procedure how many direction parts are positive (one-sided sign t
 points up half the time) and, for two procedures, the exact permutation p that the first one's parts
 are larger (one-sided, over every split of the moves into groups of those sizes).
 
-    python -m stages.evaluate.mirror - --start results/s/evaluate-{A,B} \\
+    python -m analysis.mirror - --start results/s/evaluate-{A,B} \\
         --move "LOOP, real simulator" results/s/evaluate-C --mirror results/s/evaluate-D \\
         --move "random move" results/s/evaluate-E --mirror results/s/evaluate-F \\
         [--procedure RL 1 --procedure random 2] [--json F] [--plot F.png]
@@ -30,13 +30,12 @@ import textwrap
 
 import numpy as np
 
-from stages.evaluate.odd_one_out import odd_one_out
+from analysis.odd_one_out import odd_one_out
 from worldenv_core.evaluations import emit, paired_gain, pooled_policies
-from worldenv_core.stats import permutation_p
+from worldenv_core.stats import fair_coin_tail, permutation_p
 from worldenv_core.cli import user_errors
 from worldenv_core.errors import ConfigError
 from worldenv_core.manifest import Manifest
-from worldenv_core.stats import fair_coin_tail
 from worldenv_core.report import markdown_table
 
 

@@ -9,7 +9,7 @@ paired difference of proportions and the exact McNemar p. The plot puts the gain
 episodes: a route's policies at several budgets joined in order, several at one budget (seeds) side
 by side, filled where McNemar p < 0.05.
 
-    python -m stages.evaluate.budget - --start results/s/evaluate-{A,B} \\
+    python -m analysis.budget - --start results/s/evaluate-{A,B} \\
         --policy "LOOP, real simulator" 320 results/s/evaluate-C --policy "LOOP, real simulator" 1280 results/s/evaluate-D \\
         --policy "LOOP, imagined" 250 results/s/evaluate-E [--json F] [--plot F.png]
 """

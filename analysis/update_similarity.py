@@ -8,7 +8,7 @@ while its drawn part shrinks by sqrt(K) (`random_update --along` with several `-
 every parameter alike; action cosines (the change of the mean action on recorded frames) count what the policy
 does. No simulator, no real episode: seconds on a CPU.
 
-    python -m stages.post_train_loop.update_similarity --policy checkpoints/libero_spatial/sft \\
+    python -m analysis.update_similarity --policy checkpoints/libero_spatial/sft \\
         --like checkpoints/libero_spatial/real_reference_seed1 checkpoints/libero_spatial/real_reference_seed2 \\
         checkpoints/libero_spatial/post_trained --frames "data/libero_spatial/expert-*/task*/expert_0000.mcap"
 """
@@ -20,7 +20,7 @@ import argparse
 import numpy as np
 import torch
 
-from stages.post_train_loop.random_update import action_deltas, read_policies
+from analysis.random_update import action_deltas, read_policies
 from worldenv_core.cli import user_errors
 from worldenv_core.data.selection import expand_episode_paths
 from worldenv_core.errors import ConfigError

@@ -5,7 +5,7 @@ group judged as one set. The curve says where the imagined verdict holds: a worl
 over the horizon is faithful only once enough of the task is done. Depths are read per run (off the
 frames each demo has in it), so runs of different context layouts pool.
 
-    python -m stages.evaluate_imagination.depth results/libero_goal/evaluate_imagination-<starts> \\
+    python -m analysis.verdict_depth results/libero_goal/evaluate_imagination-<starts> \\
         results/libero_goal/evaluate_imagination-<mid-episode> ... [--reflector R] [--plot depth.png]
 """
 

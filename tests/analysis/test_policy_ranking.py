@@ -3,7 +3,7 @@ import json
 
 import pytest
 
-from stages.evaluate_imagination.ranking import main, ranking
+from analysis.policy_ranking import main, ranking
 from tests.worldenv_core.imagination.test_verdict import _row
 from worldenv_core.errors import ConfigError
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from stages.post_train_loop.random_update import main, mean_update, mirror_update, random_update, scaled_update
+from analysis.random_update import main, mean_update, mirror_update, random_update, scaled_update
 from worldenv_core.errors import ConfigError
 from worldenv_core.models.checkpoint import load_model, save_state
 
@@ -82,7 +82,7 @@ def test_action_change_is_zero_for_the_same_weights_and_grows_with_the_move(tmp_
 
     from tests.conftest import synthetic_episode
     from tests.worldenv_core.models.test_policy import small_config
-    from stages.post_train_loop.random_update import action_changes
+    from analysis.random_update import action_changes
     from worldenv_core.data.mcap_io import write_episode
 
     write_episode(tmp_path / "ep.mcap", synthetic_episode(np.random.default_rng(0), size=32, length=16))

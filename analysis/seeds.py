@@ -10,7 +10,7 @@ permutation over the policies' labels (every split of the policies into groups o
 a handful of seeds no distributional assumption is worth making). With the start given, each policy's gain over it and its own paired
 McNemar p are listed too: what one seed alone would have claimed.
 
-    python -m stages.evaluate.seeds - --start results/s/evaluate-{A,B} \\
+    python -m analysis.seeds - --start results/s/evaluate-{A,B} \\
         --policy method results/s/evaluate-C --policy method results/s/evaluate-D \\
         --policy random results/s/evaluate-E --policy random results/s/evaluate-F [--json F] [--plot F.png]
 """

@@ -19,12 +19,12 @@ what the seeds' updates share survives the mean, what each drew by chance partly
 the start along that update itself (x `--scale`), `--mirror` against it, and the default in a random
 direction as large per tensor.
 
-    python -m stages.post_train_loop.random_update --policy checkpoints/libero_spatial/sft \\
+    python -m analysis.random_update --policy checkpoints/libero_spatial/sft \\
         --like <post_train_loop work>/policy --out outputs/libero_spatial-small/random_update/seed0 --seed 0 --scale 16 \\
         --frames "data/libero_spatial/expert-*/task*/expert_0000.mcap"
-    python -m stages.post_train_loop.random_update --policy checkpoints/libero_spatial/sft \\
+    python -m analysis.random_update --policy checkpoints/libero_spatial/sft \\
         --like <post_train_loop work>/policy --out outputs/libero_spatial-small/random_update/mirror --mirror
-    python -m stages.post_train_loop.random_update --policy checkpoints/libero_spatial/sft \\
+    python -m analysis.random_update --policy checkpoints/libero_spatial/sft \\
         --like checkpoints/libero_spatial/real_reference_seed1 checkpoints/libero_spatial/real_reference_seed2 \\
         --out outputs/libero_spatial-small/random_update/mean_real_seeds12 --along
 """

@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from stages.evaluate.odd_one_out import main, odd_one_out, poisson_binomial
+from analysis.odd_one_out import main, odd_one_out, poisson_binomial
 from tests.stages.test_suites import _kept_evaluation
 from worldenv_core.errors import ConfigError
 

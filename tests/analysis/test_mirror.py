@@ -2,8 +2,8 @@ import json
 
 import pytest
 
-from stages.evaluate.mirror import compare_directions, direction_and_size, main
-from tests.stages.evaluate.test_budget import moved, outcomes
+from analysis.mirror import compare_directions, direction_and_size, main
+from tests.analysis.test_budget import moved, outcomes
 from tests.stages.test_suites import _kept_evaluation
 from worldenv_core.errors import ConfigError
 

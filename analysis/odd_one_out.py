@@ -8,7 +8,7 @@ probability (successes among them) / (policies). Its success count is then a sum
 Bernoullis (Poisson-binomial), computed exactly; the p-value is how far out the observed count lies.
 Each side pools evaluations as `paired` does (record ids or kept folders).
 
-    python -m stages.evaluate.odd_one_out - --first results/libero_spatial/evaluate-{A,B} \\
+    python -m analysis.odd_one_out - --first results/libero_spatial/evaluate-{A,B} \\
         --other results/libero_spatial/evaluate-C --other results/libero_spatial/evaluate-D [--json F]
 """
 

@@ -4,7 +4,7 @@ from fractions import Fraction
 
 import pytest
 
-from stages.evaluate_imagination.depth import by_depth, depths, plot_depth
+from analysis.verdict_depth import by_depth, depths, plot_depth
 from tests.worldenv_core.imagination.test_verdict import _row
 from worldenv_core.errors import ConfigError
 from worldenv_core.imagination.verdict import verdict_metrics
