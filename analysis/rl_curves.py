@@ -85,8 +85,8 @@ def plot(runs: dict[str, dict], path: str | Path, title: str = "") -> Path:
             if pts and key == "validation":  # with the 95 % binomial interval of each point's episodes
                 err = [1.96 * math.sqrt(y * (1 - y) / n) if n else 0.0 for (_, y), n in zip(pts, s["validation_episodes"])]
                 ax.errorbar([x for x, _ in pts], [y for _, y in pts], yerr=err, marker="o", ms=4, capsize=3, label=label)
-            elif pts:
-                ax.plot([x for x, _ in pts], [y for _, y in pts], label=label)
+            elif pts:  # markers: a run of one iteration shows too
+                ax.plot([x for x, _ in pts], [y for _, y in pts], label=label, marker="o", markersize=3)
         if key in ("validation", "mean_reward"):
             ax.set_ylim(0, 1)
         ax.set_title(name, fontsize=10)
