@@ -50,3 +50,15 @@ def test_relative_links_resolve(page):
         elif anchor and file.suffix == ".md" and anchor not in anchors(file):
             broken.append(f"{target}: no heading #{anchor} in {file.relative_to(ROOT)}")
     assert not broken, "\n".join(broken)
+
+
+def test_the_house_plan_names_every_module():
+    """docs/development.md's layout names every module of the product and its wings by file name, so
+    the list cannot drift from the tree (a new module without a line there fails here)."""
+    plan = (ROOT / "docs" / "development.md").read_text()
+    modules = [p for top in ("stages", "worldenv_core", "analysis", "benchmarks") for p in (ROOT / top).rglob("*.py")
+               if p.name not in ("__init__.py", "__main__.py")]
+    assert modules
+    missing = sorted(str(p.relative_to(ROOT)) for p in modules if p.name not in plan)
+    assert not missing, f"docs/development.md does not name {missing}"
+
