@@ -92,15 +92,20 @@ suites-table: setup
 # by the released reflector (checkpoints/<suite>/reflector); without one, oracle termination only.
 SUITE ?= libero_goal
 RELEASE_INIT ?= 50
+# The SFT policy to use per suite (checkpoints/README.md, "Use these"): on libero_goal the folder `sft` is the
+# first, weaker recipe; `sft_arm_noise` is the one the results report.
+SFT_FOLDER_libero_goal = sft_arm_noise
+SFT_FOLDER = $(or $(SFT_FOLDER_$(SUITE)),sft)
 eval-release: setup
 	@if [ -d checkpoints/$(SUITE)/reflector ]; then term="termination=all reflector_from=checkpoints/$(SUITE)/reflector"; \
 	else term="termination=oracle"; echo "checkpoints/$(SUITE)/reflector: not released, so oracle termination only"; fi; \
 	for policy in sft post_trained; do \
-	  if [ -d checkpoints/$(SUITE)/$$policy ]; then \
-	    echo "evaluating checkpoints/$(SUITE)/$$policy ($$term)"; \
+	  folder=$$policy; [ $$policy = sft ] && folder=$(SFT_FOLDER); \
+	  if [ -d checkpoints/$(SUITE)/$$folder ]; then \
+	    echo "evaluating checkpoints/$(SUITE)/$$folder as $$policy ($$term)"; \
 	    $(PY) -m stages.evaluate +task=$(SUITE) experiment_dir=outputs/release-$(SUITE) \
-	      policy_from=checkpoints/$(SUITE)/$$policy policy_label=$$policy $$term init_states=$(RELEASE_INIT) || exit 1; \
-	  else echo "checkpoints/$(SUITE)/$$policy: not released"; fi; done
+	      policy_from=checkpoints/$(SUITE)/$$folder policy_label=$$policy $$term init_states=$(RELEASE_INIT) || exit 1; \
+	  else echo "checkpoints/$(SUITE)/$$folder: not released"; fi; done
 
 # LOOP with the true reward in the real simulator from the released SFT policy (the RL recipe's campaign,
 # results/rl_campaign.md): resumable, the same command continues from the last iteration.
