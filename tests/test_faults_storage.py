@@ -184,7 +184,8 @@ def test_a_collection_too_big_for_its_bound_or_the_disk_is_refused_naming_both(t
 
 @pytest.mark.sim
 @pytest.mark.slow
-@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+@pytest.mark.parametrize("signum", [signal.SIGINT, pytest.param(signal.SIGTERM, marks=pytest.mark.fault_full)],
+                         ids=["SIGINT", "SIGTERM"])  # the same path twice: make test runs the one, make faults both
 def test_an_interrupt_is_one_line_and_the_same_command_resumes(demo_experiment, tmp_path, signum):
     exp = tmp_path / "exp"
     shutil.copytree(demo_experiment, exp)
