@@ -23,13 +23,19 @@ class DiskFullError(ArtefactError):
     """A write ran out of space (or quota) on its device."""
 
 
-def free_bytes(path: str | os.PathLike) -> int | None:
-    """Free space on the file system holding `path` (its nearest existing ancestor)."""
+def nearest_existing(path: str | os.PathLike) -> Path:
+    """`path` itself if it exists, else its nearest existing ancestor: where a run that will create
+    `path` can be asked about space and permissions before it creates anything."""
     p = Path(path).absolute()
     while not p.exists() and p != p.parent:
         p = p.parent
+    return p
+
+
+def free_bytes(path: str | os.PathLike) -> int | None:
+    """Free space on the file system holding `path` (its nearest existing ancestor)."""
     try:
-        return shutil.disk_usage(p).free
+        return shutil.disk_usage(nearest_existing(path)).free
     except OSError:
         return None
 

@@ -15,6 +15,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from worldenv_core.contract import TaskContract
 from worldenv_core.errors import ConfigError
+from worldenv_core.files import nearest_existing
 from worldenv_core.envs.tasks import check_suite, resolve_task_ids, suite_max_steps
 from worldenv_core.manifest import Manifest, config_hash
 
@@ -82,9 +83,7 @@ def seed_everything(seed: int) -> None:
 def check_writable(key: str, path) -> None:
     """`path` (a folder a run will create or write) can be written, checked without creating it:
     a file made and removed in its nearest existing ancestor. Else one line naming the key."""
-    probe = Path(path).absolute()
-    while not probe.exists() and probe != probe.parent:
-        probe = probe.parent
+    probe = nearest_existing(path)
     if not probe.is_dir():
         raise ConfigError(f"{key} {path} is not writable: {probe} is a file, not a folder; give {key}=<a folder>")
     try:
@@ -100,11 +99,9 @@ def experiment(cfg: DictConfig) -> Manifest:
     root = Path(cfg.experiment_dir)
     try:
         root.mkdir(parents=True, exist_ok=True)
-        # a name of its own: distributed ranks probe the same directory at the same time
-        with tempfile.NamedTemporaryFile(dir=root, prefix=".write_test"):
-            pass
     except OSError as e:
         raise ConfigError(f"experiment_dir {root} is not writable: {e}") from e
+    check_writable("experiment_dir", root)  # distributed ranks probe it at once: each probe file has a name of its own
     return Manifest(root)
 
 
