@@ -12,7 +12,7 @@ export MUJOCO_GL ?= egl
 export HF_HUB_OFFLINE := 1
 export TOKENIZERS_PARALLELISM := false
 
-.PHONY: setup test test-fast faults smoke pipeline rl-real suites suites-table eval-release fidelity bench cost-model expert-table tensorboard clean
+.PHONY: setup test test-fast faults smoke pipeline rl-real suites suites-table eval-release research-checkpoints fidelity bench cost-model expert-table tensorboard clean
 
 setup: $(STAMP)
 
@@ -92,20 +92,31 @@ suites-table: setup
 # by the released reflector (checkpoints/<suite>/reflector); without one, oracle termination only.
 SUITE ?= libero_goal
 RELEASE_INIT ?= 50
-# The SFT policy to use per suite (checkpoints/README.md, "Use these"): on libero_goal the folder `sft` is the
-# first, weaker recipe; `sft_arm_noise` is the one the results report.
-SFT_FOLDER_libero_goal = sft_arm_noise
-SFT_FOLDER = $(or $(SFT_FOLDER_$(SUITE)),sft)
 eval-release: setup
 	@if [ -d checkpoints/$(SUITE)/reflector ]; then term="termination=all reflector_from=checkpoints/$(SUITE)/reflector"; \
 	else term="termination=oracle"; echo "checkpoints/$(SUITE)/reflector: not released, so oracle termination only"; fi; \
 	for policy in sft post_trained; do \
-	  folder=$$policy; [ $$policy = sft ] && folder=$(SFT_FOLDER); \
+	  folder=$$policy; \
 	  if [ -d checkpoints/$(SUITE)/$$folder ]; then \
 	    echo "evaluating checkpoints/$(SUITE)/$$folder as $$policy ($$term)"; \
 	    $(PY) -m stages.evaluate +task=$(SUITE) experiment_dir=outputs/release-$(SUITE) \
 	      policy_from=checkpoints/$(SUITE)/$$folder policy_label=$$policy $$term init_states=$(RELEASE_INIT) || exit 1; \
 	  else echo "checkpoints/$(SUITE)/$$folder: not released"; fi; done
+
+# The research variants (checkpoints/README.md, "Research variants"): out of the tree, each kept for one
+# figure; extracted here at their paths from the commit that last held them (needs the full history).
+RESEARCH_REV = 34160b4
+RESEARCH_CHECKPOINTS = libero_goal/sft_imagined_proprio libero_goal/worldsim_open_loop \
+  libero_goal/worldsim_open_loop_gpu libero_goal/worldsim_open_loop_refit libero_goal/reflector_imagined \
+  libero_goal/reflector_latent_pairs libero_goal/reflector_pairs libero_goal/reflector_pairs_refit \
+  libero_goal/reflector_pairs_starts libero_spatial/real_reference_seed1 libero_spatial/real_reference_seed2
+research-checkpoints:
+	@git cat-file -e $(RESEARCH_REV)^{commit} 2>/dev/null || { echo "commit $(RESEARCH_REV) is not in this clone: \
+	fetch the full history (git fetch --unshallow) first"; exit 1; }
+	@for f in $(RESEARCH_CHECKPOINTS); do git archive $(RESEARCH_REV) checkpoints/$$f | tar -x && echo "checkpoints/$$f"; done
+	@git archive $(RESEARCH_REV) checkpoints/libero_goal/sft | \
+	  tar -x --transform 's|^checkpoints/libero_goal/sft|checkpoints/libero_goal/sft_first_recipe|' && \
+	  echo "checkpoints/libero_goal/sft_first_recipe (the first SFT recipe, the folder sft until it was replaced)"
 
 # LOOP with the true reward in the real simulator from the released SFT policy (the RL recipe's campaign,
 # results/rl_campaign.md): resumable, the same command continues from the last iteration.

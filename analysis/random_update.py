@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from stages.evaluate.keep import portable
+from analysis.keep import portable
 from worldenv_core.cli import user_errors
 from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.data.selection import expand_episode_paths

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from stages.evaluate_imagination.evaluation import judged
-from stages.evaluate_imagination.pooled import judged_by, read_runs
+from analysis.pooled_verdicts import judged_by, read_runs
 from worldenv_core.cli import user_errors
 from worldenv_core.files import write_text_atomic
 from worldenv_core.viz import figure, save_figure

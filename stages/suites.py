@@ -197,7 +197,7 @@ def read_kept_spec(path: str | Path) -> dict:
 def _kept(root: Path, suite: str, name: str, needs: str, where: str) -> Path:
     folder = root / suite / name
     if not (folder / needs).is_file():
-        raise ConfigError(f"{where}: {folder} has no {needs} (keep it with python -m stages.evaluate.keep)")
+        raise ConfigError(f"{where}: {folder} has no {needs} (keep it with python -m analysis.keep)")
     return folder
 
 

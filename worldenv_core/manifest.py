@@ -261,6 +261,9 @@ class StageRun:
         self.record = StageRecord(stage=stage, tags=dict(tags), config=config, config_hash=config_hash(config))
         self.inputs = self.record.inputs
         self.metrics = self.record.metrics
+        # why a run that ended normally leaves no record: a deadline cut it short (the same command goes
+        # on), or it only exported a pack (which no later stage may take for the stage's result)
+        self.not_recorded: str | None = None
         self._locks = []
 
     def lock(self, target, what: str | None = None) -> None:
@@ -342,6 +345,9 @@ class StageRun:
 
     def _finish(self, exc_type) -> bool:
         if exc_type is not None:
+            return False
+        if self.not_recorded:
+            log.info("%s leaves no record in the manifest: %s", self.record.stage, self.not_recorded)
             return False
         r = self.record
         r.finished = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")

@@ -32,8 +32,11 @@ def available_tasks() -> list[str]:
     return sorted(p.stem for p in (CONF_DIR / "task").glob("*.yaml"))
 
 
-def require_task(cfg: DictConfig) -> DictConfig:
-    """The task group is selected on the command line (`+task=libero_goal`); say so when it is not."""
+def require_task(cfg: DictConfig, registry: bool = True) -> DictConfig:
+    """The task group is selected on the command line (`+task=libero_goal`); say so when it is not.
+    `registry=False` on a host without the benchmark (a stage run from a pack: the suite and task ids
+    were checked against the registry where the pack was made, and the pack's task is checked against
+    this one on reading)."""
     task = cfg.get("task")
     if task is None:
         raise ConfigError(
@@ -43,17 +46,18 @@ def require_task(cfg: DictConfig) -> DictConfig:
     if OmegaConf.is_missing(task, "suite"):
         raise ConfigError("task.suite has no value: add task.suite=<a registered LIBERO suite>, "
                           "e.g. +task=suite task.suite=libero_goal_swap")
-    check_suite(task.suite)
-    resolve_task_ids(task.suite, task.task_ids)
+    if registry:
+        check_suite(task.suite)
+        resolve_task_ids(task.suite, task.task_ids)
     if task.get("max_steps") is None:  # null: the standard horizon of the suite it derives from
         with open_dict(task):
             task.max_steps = suite_max_steps(task.suite)
     return task
 
 
-def task_contract(cfg: DictConfig) -> TaskContract:
+def task_contract(cfg: DictConfig, registry: bool = True) -> TaskContract:
     """The run's task contract, built once from the validated `cfg.task`."""
-    return TaskContract.from_config(require_task(cfg))
+    return TaskContract.from_config(require_task(cfg, registry))
 
 
 def positive_int(cfg: DictConfig, key: str, allow_zero: bool = False) -> int:
@@ -151,10 +155,11 @@ def resolve_checkpoint(stage_run, ref, producer: str, task: str, scale: str) -> 
     return str(stage_run.use(record, kind="checkpoint")[0].parent)
 
 
-def resolve_policy(cfg: DictConfig, stage_run) -> str:
+def resolve_policy(cfg: DictConfig, stage_run, contract: TaskContract | None = None) -> str:
     """`policy_from=`: sft (the latest train_policy; also null), post_trained (the latest
     post_train_loop), a checkpoint folder, or a record id. (Not `policy=`: that name is the
-    policy-architecture config group, which Hydra would try to select.)"""
+    policy-architecture config group, which Hydra would try to select.) `contract`: the run's
+    (default: `task_contract(cfg)`)."""
     from worldenv_core.models.checkpoint import load_checkpoint
 
     ref = cfg.policy_from
@@ -162,7 +167,7 @@ def resolve_policy(cfg: DictConfig, stage_run) -> str:
     path = resolve_checkpoint(stage_run, None if ref in POLICY_SOURCES else ref, producer, cfg.task.name, cfg.scale.name)
     # built once here, before any worker starts: its config, meta and weights agree with each other
     # and with the task (a wrong camera or width is one line now, not a traceback in every worker)
-    load_checkpoint(path, "policy", task_contract(cfg))
+    load_checkpoint(path, "policy", contract or task_contract(cfg))
     return path
 
 

@@ -221,7 +221,7 @@ def plot_routes(ctx: ReportContext, runs: list[StageRecord], path: Path) -> Path
 
 
 def plot_pack_runs(histories: dict[str, str | Path], path: str | Path, title: str = "", paired: bool = True) -> Path:
-    """LOOP runs side by side (`from_pack`'s history.json, or a work dir's training.json), by
+    """LOOP runs side by side (work dirs' training.json, or a history.json kept from older runs), by
     iteration: imagined success (reflector > eta), groups kept and mean reward, each raw (faint)
     and as a 9-iteration running mean. Runs on one pack with one seed draw the same contexts at the
     same iteration, so their curves share a shape. `paired`: runs 1-2 solid, 3-4 dashed in the same

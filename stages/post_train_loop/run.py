@@ -11,38 +11,40 @@ advantages from R at t_end, and takes `ppo_epochs` passes of the clipped objecti
 `env=real` is the reference: the same LOOP from the same contexts with the real simulator as the
 environment and its success oracle as the reward (no world model, no reflector); every rollout
 is a real episode, counted in the record.
+
+On a GPU host without the episodes, the simulator or the instruction encoder, imagined LOOP runs
+from a context pack: `contexts_to=<pack>` here writes the contexts it would train from, and
+`contexts_from=<pack> minutes=6` there trains on them (docs/post_training.md#on-a-gpu-host).
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import time
 from pathlib import Path
 
 import numpy as np
-import torch
 from omegaconf import DictConfig
 
+from stages.post_train_loop.environment import Rollouts, check_pack, collector, pack_contexts, rollouts
 from stages.post_train_loop.evaluation import (PairedCheck, imagined_success, real_success, record_imagined,
                                                validation_success, with_gap)
 from stages.post_train_loop.sweep import sweep_dir, write_summary
-from stages.post_train_loop.training import (contexts_from_episodes, imagined_collector, placements, real_collector,
-                                             real_starts, rl_phase)
+from stages.post_train_loop.training import rl_phase
 from worldenv_core.envs.tasks import contract_task_ids
 from worldenv_core.distributed import is_main, launched
 from worldenv_core.files import write_text_atomic
-from worldenv_core.envs.replay import RealStart, unreplayable
-from worldenv_core.imagination.env import build_imagined_env
 from worldenv_core.data.selection import collected_episodes
+from worldenv_core.imagination.context_pack import read_context_pack
 from worldenv_core.manifest import StageRun
 from worldenv_core.models.checkpoint import load_checkpoint, read_config
-from worldenv_core.models.text import InstructionEncoder
 from worldenv_core.rl.loop import OPTIMIZERS, check_success_range, make_optimizer
-from worldenv_core.rl.termination import check_eta, reflector_eta
+from worldenv_core.rl.termination import check_eta
 from worldenv_core.stage import (ConfigError, positive_int, require_task, resolve_checkpoint, resolve_policy, resolved,
                                  start, task_contract, work_dir)
 from worldenv_core.tracking import make_tracker
-from worldenv_core.training import Trainer, pick_device
+from worldenv_core.training import Trainer, pick_device, planned_steps, planned_total
 
 log = logging.getLogger("worldenv.post_train_loop")
 
@@ -55,10 +57,12 @@ CONTEXTS = ("episodes", "placements")  # rl.contexts: collected episodes' starts
 RL_DEFAULTS = {"mid_episode_frames": 0, "verdicts": "own", "contexts": "episodes", "group_success": None,
                "max_kl": None, "kl_states": 512, "optimizer": "adam", "reset_optimizer": False, "train_scale_head": True,
                "direction_check": False, "noise_scale": 1.0}
+# top-level settings added later, kept out of the settings hash and work dir at these values
+LATER_DEFAULTS = {"contexts_to": None, "contexts_from": None, "minutes": None}
 
 
 def validate(cfg: DictConfig) -> None:
-    require_task(cfg)
+    require_task(cfg, registry=not cfg.contexts_from)
     if launched() > 1 and cfg.env == "real":  # real rollouts fan out over worker processes instead
         raise ConfigError(f"env=real runs in one process (its rollouts use workers=), but torchrun launched "
                           f"{launched()}")
@@ -111,144 +115,162 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"rl.verdicts must be one of {list(VERDICTS)}, got {cfg.rl.verdicts!r}")
     if cfg.env not in ENVS:
         raise ConfigError(f"env must be one of {list(ENVS)}, got {cfg.env!r}")
+    if (cfg.contexts_to or cfg.contexts_from) and cfg.env == "real":
+        raise ConfigError("a context pack holds imagined LOOP's contexts: contexts_to / contexts_from need env=imagined")
+    if cfg.contexts_to and cfg.contexts_from:
+        raise ConfigError("contexts_to writes a pack here, contexts_from trains from one there: give one of them")
+    if cfg.minutes is not None and not cfg.minutes > 0:
+        raise ConfigError(f"minutes must be > 0 or null (rl.iterations as given), got {cfg.minutes}")
 
 
 def run(cfg: DictConfig) -> dict:
+    packed = bool(cfg.contexts_from)  # a GPU host: no episodes, no simulator, no instruction encoder
     manifest = start(cfg, validate)
-    contract, rl = task_contract(cfg), cfg.rl
+    deadline = time.monotonic() + 60 * cfg.minutes if cfg.minutes else None  # this sitting's wall clock
+    contract, rl = task_contract(cfg, registry=not packed), cfg.rl
     device = pick_device(cfg.device)
-    config = resolved(cfg)
+    config = {k: v for k, v in resolved(cfg).items() if not (k in LATER_DEFAULTS and v == LATER_DEFAULTS[k])}
     real, sweep = cfg.env == "real", sweep_dir()
     tags = {"task": contract.name, "scale": cfg.scale.name, "eta": None if cfg.eta is None else float(cfg.eta),
             "n_rollouts": int(rl.n_rollouts), "env": cfg.env, **({"sweep": sweep.name} if sweep else {})}
     with StageRun(manifest, "post_train_loop", tags, config) as stage:
-        policy_path = resolve_policy(cfg, stage)
-        encoder = InstructionEncoder()
+        policy_path = resolve_policy(cfg, stage, contract)
+        pack = read_context_pack(cfg.contexts_from) if packed else None
+        if pack is not None:  # by content: another pack is another training, the same one a resume
+            check_pack(cfg, contract, pack, f"context pack {cfg.contexts_from}")
+            stage.record.input_files.append(manifest.artefact(cfg.contexts_from, kind="context_pack"))
+        encoder = pack.encoder if packed else _instruction_encoder()
         encode = lambda s: encoder(s).to(device)  # noqa: E731
         policy, pmeta = load_checkpoint(policy_path, "policy", contract, device=str(device))
-        task_ids = set(contract_task_ids(contract))  # task.task_ids=[...] trains on those tasks' contexts only
         fresh = rl.contexts == "placements"  # no collected episode needed: every context a new scene
-        episodes = [] if fresh else collected_episodes(manifest, stage, contract.name, cfg.scale.name, cfg.expert_only)
-        if not real:
-            worldsim_path = resolve_checkpoint(stage, cfg.worldsim_from, "train_worldsim", contract.name, cfg.scale.name)
-            reflector_path = resolve_checkpoint(stage, cfg.reflector_from, "train_reflector", contract.name, cfg.scale.name)
+        episodes = [] if fresh or packed else collected_episodes(manifest, stage, contract.name, cfg.scale.name,
+                                                                 cfg.expert_only)
+        worldsim_path, reflector_path = (None, None) if real else (
+            resolve_checkpoint(stage, cfg.worldsim_from, "train_worldsim", contract.name, cfg.scale.name),
+            resolve_checkpoint(stage, cfg.reflector_from, "train_reflector", contract.name, cfg.scale.name))
         if (done := stage.finished_before()) is not None:
             summarise_sweep(sweep, manifest, contract.name)
             return done.metrics
-
-        def chosen(starts: list[RealStart]) -> list[int]:
-            """The starts of the tasks trained on (`task.task_ids`), less the mid-episode ones whose
-            recorded prefix does not replay (no real rollout or paired replay could start there),
-            dropped and named before any rollout."""
-            mine = [i for i, st in enumerate(starts) if st.task_id in task_ids]
-            errors = unreplayable(contract, [starts[i] for i in mine], workers=cfg.eval.workers,
-                                  progress=cfg.progress) if rl.mid_episode_frames else {}
-            for error in errors.values():
-                log.warning("context dropped: %s", error)
-            stage.metrics["dropped_contexts"] = len(errors)
-            return [i for i in mine if starts[i].key not in errors]
-        if real:  # the reference: no world model, no reflector; the oracle decides
-            worldsim_path = reflector_path = env = None
-            camera, eta = contract.cameras[0], None
-            stage.record.tags["eta"] = None
-            if policy.cameras != [camera]:
-                raise ConfigError(f"the policy looks at {policy.cameras}; env=real renders only {camera!r} for it")
-            starts, instructions = real_starts(episodes, rl.mid_episode_frames)
-            keep = chosen(starts)
-            starts, instructions = [starts[i] for i in keep], [instructions[i] for i in keep]
-            n_contexts = None if fresh else len(starts)
-        else:
-            eta = reflector_eta(reflector_path, cfg.eta)
-            stage.record.tags["eta"] = eta  # the threshold used, also when it is the reflector's own
-            env, camera = build_imagined_env(worldsim_path, reflector_path, eta, encode, rl.horizon, rl.sampling_steps,
-                                             device, contract, rl.sampler_noise)
-            if policy.cameras != [camera]:
-                raise ConfigError(f"the policy looks at {policy.cameras}, but the world simulator imagines only {camera!r}")
-            contexts, starts = contexts_from_episodes(episodes, camera, rl.mid_episode_frames)
-            keep = chosen(starts)
-            contexts, starts = [contexts[i] for i in keep], [starts[i] for i in keep]
-            n_contexts = len(contexts)
-        if n_contexts == 0:
-            raise ConfigError(f"no collected episode of task(s) {sorted(task_ids)} to start rollouts from")
-        stage.metrics["contexts"] = "fresh placements" if fresh else n_contexts
-        # The work dir (what resume finds) is named by what defines the training and by its inputs,
-        # not by how it is evaluated or shown: changing eval.* or progress continues the same run.
-        key = {k: v for k, v in config.items() if k not in ("eval", "progress")}
-        # added later: at their defaults (first frames only, the environment's own verdicts) they keep the
-        # work dirs of earlier runs
-        key["rl"] = {k: v for k, v in key["rl"].items() if not (k in RL_DEFAULTS and v == RL_DEFAULTS[k])}
+        src = rollouts(cfg, stage, contract, policy, encode, episodes, worldsim_path, reflector_path, pack, device)
+        stage.record.tags["eta"] = src.eta  # the threshold used, also when it is the reflector's own (real: none)
+        if cfg.contexts_to:
+            return pack_contexts(cfg, stage, contract, src, encoder)
+        stage.metrics["contexts"] = "fresh placements" if src.n_contexts is None else src.n_contexts
+        key = work_key(config, stage.record.input_files[-1].sha256 if packed else None)
         work = work_dir(cfg.experiment_dir, "post_train_loop", key, stage.work_inputs())
         stage.lock(work)  # one run at a time trains into a work dir
         if is_main():  # the resolved config, what analysis reads; in a torchrun launch rank 0 alone writes
             work.mkdir(parents=True, exist_ok=True)
             write_text_atomic(work / "run_config.json", json.dumps(config, indent=1, default=str))
         optimizer = make_optimizer(policy, rl.optimizer, rl.lr_backbone, rl.lr_heads, rl.train_scale_head)
+        collect = collector(cfg, contract, src, encode, policy_path, pmeta, work)
+        if cfg.minutes:  # planned from iterations timed on copies, so the run itself starts from the untouched policy
+            rl.iterations = planned_total(work, cfg.minutes, lambda s: _time_iterations(policy, collect, src, rl, cfg, s))
         provenance = {"policy": policy_path, "worldsim": worldsim_path, "reflector": reflector_path}
         trainer = Trainer(work, policy, {"ppo": optimizer}, model_config=read_config(policy_path)["model"],
-                          meta={**pmeta, "post_trained_from": policy_path, "worldsim": worldsim_path,
-                                "reflector": reflector_path},
-                          log_every=1, checkpoint_every=1, desc="post_train_loop", progress=cfg.progress,
+                          meta=loop_meta(pmeta, provenance, src, key.get("contexts_from")), log_every=1, checkpoint_every=1, desc="post_train_loop", progress=cfg.progress,
                           postfix=("mean_reward", "reflector_success_rate", "approx_kl"),
                           tracker=make_tracker(cfg.get("logger"), work, "post_train_loop", contract.name, config))
         log.info("post-training %s for %d iterations in the %s environment: %d contexts x %d rollouts each, eta %s, "
                  "on %s; work dir %s", policy_path, rl.iterations, cfg.env, rl.contexts_per_iteration, rl.n_rollouts,
-                 "oracle" if real else f"{eta:.2f}", device, work)
-
-        def evaluate(done: int, checkpoint: Path | None) -> dict:
-            """Imagined success on fixed contexts, real success, a few recorded imagined rollouts."""
-            values = {}
-            if cfg.eval.imagined_contexts and not real:
-                paired = (PairedCheck(contract, starts, cfg.eval.paired_contexts, cfg.eval.workers, cfg.progress)
-                          if cfg.eval.every else None)  # beside every real evaluation
-                values.update(imagined_success(policy, env, contexts, cfg.eval.imagined_contexts,
-                                               cfg.eval.imagined_rollouts, encode, cfg.seed, paired))
-            if cfg.eval.every and cfg.eval.init_states:
-                values["real_success"] = real_success(str(checkpoint or policy_path), contract, cfg.eval.init_states,
-                                                      cfg.eval.workers, cfg.progress)
-            if checkpoint is not None and cfg.eval.keep_policies:  # the policy at this point, for benchmark runs later
-                trainer.save_final(work / "evaluated" / f"iter_{done:04d}", iteration=done)
-            if cfg.eval.every and cfg.eval.validation:  # what a recipe is judged by, never the benchmark
-                values.update(validation_success(str(checkpoint or policy_path), contract, cfg.eval.validation,
-                                                 cfg.eval.workers, cfg.progress))
-            if cfg.eval.record_contexts and not real:
-                record_imagined(policy, env, contexts, cfg.eval.record_contexts, contract, encode, camera,
-                                work / "imagined" / f"iter_{done:04d}", {**provenance, "iteration": str(done)}, cfg.seed)
-            log.info("evaluation at iteration %d: %s", done, json.dumps(with_gap(values)))
-            return values
-
-        collect = (real_collector(contract, placements(contract) if fresh else starts, instructions, rl.n_rollouts,
-                                  encode, rl.horizon,
-                                  read_config(policy_path)["model"], pmeta, work, cfg.eval.workers, cfg.progress,
-                                  rl.noise_scale)
-                   if real else imagined_collector(env, contexts, rl.n_rollouts, encode, rl.noise_scale))
-        trainer.fit([rl_phase(policy, optimizer, collect, n_contexts, rl, cfg.seed)], evaluate=evaluate,
-                    evaluate_every=cfg.eval.every)
-        final = trainer.save_final(work / "policy", iteration=rl.iterations)
+                 "oracle" if real else f"{src.eta:.2f}", device, work)
+        evaluate = evaluator(cfg, contract, src, policy, policy_path, encode, trainer, work, packed, provenance)
+        trainer.fit([rl_phase(policy, optimizer, collect, src.n_contexts, rl, cfg.seed)], evaluate=evaluate,
+                    evaluate_every=cfg.eval.every, deadline=deadline)
+        final = trainer.save_final(work / "policy", iteration=trainer.step)
+        if trainer.stopped_early:
+            stage.not_recorded = f"the deadline (minutes={cfg.minutes}) came at iteration {trainer.step}; the same command goes on"
         trainer.finish(stage, final, f"post_train_loop {contract.name}", plot="training.png")
         stage.add_output(work / "training.json", kind="report")
         for path in sorted((work / "imagined").glob("iter_*/*.mcap")):  # every sitting's, also before a resume
             stage.add_output(path, kind="imagined")
-        history = trainer.history
-        by_step = lambda key: {str(h["step"]): h[key] for h in history if key in h}  # noqa: E731
-        stage.metrics.update({"iterations": rl.iterations, "train_wall_s": round(trainer.wall_s, 1),
-                              "device": str(device), "final_mean_reward": history[-1].get("mean_reward"),
-                              "real_success": by_step("real_success"), "imagined_reward": by_step("imagined_reward"),
-                              "validation_success": by_step("validation_success"),
-                              "imagined_success": by_step("imagined_success"),
-                              # evaluation: monitoring only, never a training signal
-                              "real_episodes": len(by_step("real_success")) * cfg.eval.init_states
-                              * len(contract_task_ids(contract)) + sum(h.get("paired_episodes", 0) for h in history)
-                              + sum(h.get("validation_episodes", 0) for h in history),
-                              "paired_hack_rate": by_step("paired_hack_rate"),
-                              "paired_imagined_mixed": by_step("paired_imagined_mixed"),
-                              "paired_real_mixed": by_step("paired_real_mixed"),
-                              # the reference trains on real episodes: what the imagined route is compared at
-                              "train_real_episodes": rl.iterations * rl.contexts_per_iteration * rl.n_rollouts if real else 0,
-                              "kept_groups": float(np.mean([h["kept_groups"] for h in history if "kept_groups" in h]
-                                                           or [float("nan")]))})
+        stage.metrics.update(run_metrics(cfg, contract, trainer, device))
         log.info("post-trained policy saved to %s; metrics %s", final, json.dumps(stage.metrics))
     summarise_sweep(sweep, manifest, contract.name)
     return stage.metrics
+
+
+def work_key(config: dict, pack_sha256: str | None) -> dict:
+    """What names the work dir (what resume finds): what defines the training and its inputs, not how
+    it is evaluated or shown (changing eval.* or progress continues the same run); rl settings added
+    later count only away from their defaults, so earlier runs keep their work dirs; a context pack
+    by its content."""
+    key = {k: v for k, v in config.items() if k not in ("eval", "progress")}
+    key["rl"] = {k: v for k, v in key["rl"].items() if not (k in RL_DEFAULTS and v == RL_DEFAULTS[k])}
+    return {**key, "contexts_from": pack_sha256} if pack_sha256 else key
+
+
+def loop_meta(pmeta: dict, provenance: dict, src: Rollouts, pack_sha256: str | None) -> dict:
+    """The post-trained policy's meta: its starting policy's, what it was post-trained from and in."""
+    meta = {**pmeta, "post_trained_from": provenance["policy"], "worldsim": provenance["worldsim"],
+            "reflector": provenance["reflector"]}
+    if pack_sha256:
+        meta["trained_from"] = {"context_pack": pack_sha256[:12], "contexts": src.n_contexts, "eta": src.eta}
+    return meta
+
+
+def _instruction_encoder():
+    from worldenv_core.models.text import InstructionEncoder  # here: a context pack's run needs none
+
+    return InstructionEncoder()
+
+
+def _time_iterations(policy, collect, src: Rollouts, rl, cfg: DictConfig, seconds: float) -> int:
+    """How many iterations fit in `seconds`, timed on copies of the policy and its optimizer."""
+    import copy
+
+    probe_policy = copy.deepcopy(policy)
+    probe_opt = make_optimizer(probe_policy, rl.optimizer, rl.lr_backbone, rl.lr_heads, rl.train_scale_head)
+    probe_rl = copy.deepcopy(rl)
+    probe_rl.iterations = 4
+    probe = rl_phase(probe_policy, probe_opt, collect, src.n_contexts, probe_rl, cfg.seed)
+    return planned_steps(probe.step, iter(probe.batches(0)), seconds, probe=3, warm=1)
+
+
+def evaluator(cfg: DictConfig, contract, src: Rollouts, policy, policy_path: str, encode, trainer, work: Path,
+              packed: bool, provenance: dict):
+    """`evaluate(done, checkpoint)` for the Trainer: imagined success on fixed contexts, real success and
+    the validation set (where the simulator is: not from a context pack), a few recorded imagined rollouts."""
+    real, sim = cfg.env == "real", not packed
+
+    def evaluate(done: int, checkpoint: Path | None) -> dict:
+        values, policy_at = {}, str(checkpoint or policy_path)
+        if cfg.eval.imagined_contexts and not real:
+            paired = (PairedCheck(contract, src.starts, cfg.eval.paired_contexts, cfg.eval.workers, cfg.progress)
+                      if cfg.eval.every and sim else None)  # beside every real evaluation
+            values.update(imagined_success(policy, src.env, src.contexts, cfg.eval.imagined_contexts,
+                                           cfg.eval.imagined_rollouts, encode, cfg.seed, paired))
+        if cfg.eval.every and cfg.eval.init_states and sim:
+            values["real_success"] = real_success(policy_at, contract, cfg.eval.init_states, cfg.eval.workers, cfg.progress)
+        if checkpoint is not None and cfg.eval.keep_policies:  # the policy at this point, for benchmark runs later
+            trainer.save_final(work / "evaluated" / f"iter_{done:04d}", iteration=done)
+        if cfg.eval.every and cfg.eval.validation and sim:  # what a recipe is judged by, never the benchmark
+            values.update(validation_success(policy_at, contract, cfg.eval.validation, cfg.eval.workers, cfg.progress))
+        if cfg.eval.record_contexts and not real and sim:
+            record_imagined(policy, src.env, src.contexts, cfg.eval.record_contexts, contract, encode, src.camera,
+                            work / "imagined" / f"iter_{done:04d}", {**provenance, "iteration": str(done)}, cfg.seed)
+        log.info("evaluation at iteration %d: %s", done, json.dumps(with_gap(values)))
+        return values
+    return evaluate
+
+
+def run_metrics(cfg: DictConfig, contract, trainer, device) -> dict:
+    """The record's metrics: the curves by iteration and every real episode, by use."""
+    rl, history = cfg.rl, trainer.history
+    by_step = lambda key: {str(h["step"]): h[key] for h in history if key in h}  # noqa: E731
+    return {"iterations": trainer.step, "train_wall_s": round(trainer.wall_s, 1), "device": str(device),
+            "final_mean_reward": history[-1].get("mean_reward"), "real_success": by_step("real_success"),
+            "imagined_reward": by_step("imagined_reward"), "validation_success": by_step("validation_success"),
+            "imagined_success": by_step("imagined_success"),
+            # evaluation: monitoring only, never a training signal
+            "real_episodes": (len(by_step("real_success")) and len(by_step("real_success")) * cfg.eval.init_states
+                              * len(contract_task_ids(contract)))
+            + sum(h.get("paired_episodes", 0) for h in history) + sum(h.get("validation_episodes", 0) for h in history),
+            "paired_hack_rate": by_step("paired_hack_rate"), "paired_imagined_mixed": by_step("paired_imagined_mixed"),
+            "paired_real_mixed": by_step("paired_real_mixed"),
+            # the reference trains on real episodes: what the imagined route is compared at
+            "train_real_episodes": trainer.step * rl.contexts_per_iteration * rl.n_rollouts if cfg.env == "real" else 0,
+            "kept_groups": float(np.mean([h["kept_groups"] for h in history if "kept_groups" in h] or [float("nan")]))}
 
 
 def summarise_sweep(sweep, manifest, task: str) -> None:

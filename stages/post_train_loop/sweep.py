@@ -3,7 +3,7 @@ rl.n_rollouts=4,8`), summarised: each run of a sweep is tagged with its multirun
 summary (a table, and real success, imagined reward and hack rate against eta, one line per N)
 is written into that folder after every run and drawn again in the experiment report.
 
-The same summary for a sweep run as `from_pack` jobs on a GPU host: `sweep_packs`.
+The same summary for a sweep run from a context pack on a GPU host: `analysis.sweep_packs`.
 """
 
 from __future__ import annotations

@@ -6,6 +6,10 @@ trains it open loop, on memory it imagined itself. `init_from=` goes on from a t
 phase 3 alone. Held-out episodes (every `holdout_every`-th, or the starting model's) measure
 fidelity open loop, beside the copy-the-last-frame baseline (and the starting model), and the
 kinematic next-state model's error; side-by-side videos (real | imagined) are saved.
+
+On a GPU host without the episodes or the simulator, phase 3 runs from a latent pack:
+`init_from=<model> latents_to=<pack>` here writes the model's training set as its latents, and
+`init_from=<model> latents_from=<pack> minutes=6` there trains on it (docs/world_simulator.md).
 """
 
 from __future__ import annotations
@@ -13,39 +17,57 @@ from __future__ import annotations
 import copy
 import json
 import logging
+import time
 
 import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from stages.train_worldsim.evaluation import evaluate_fidelity, write_replays
-from stages.train_worldsim.training import ae_phase, episode_chunks, flow_phase, rollout_phase
+from stages.train_worldsim.training import (ae_phase, episode_chunks, flow_phase, fresh_velocity, rollout_phase,
+                                            snapshots)
 from worldenv_core.contract import TaskContract
 from worldenv_core.data.selection import collected_episodes, episode_key, load_split
 from worldenv_core.kinematics.camera import PinholeCamera
 from worldenv_core.kinematics.next_state import NextStateModel
 from worldenv_core.manifest import StageRun
 from worldenv_core.models.checkpoint import load_checkpoint, read_config
+from worldenv_core.models.latent_pack import read_latent_pack, write_latent_pack
+from worldenv_core.models.worldsim_data import encode_episode_frames
 from worldenv_core.stage import (ConfigError, positive_int, require_task, resolve_checkpoint, resolved, start,
                                  task_contract, work_dir)
 from worldenv_core.tracking import make_tracker
-from worldenv_core.training import Trainer, pick_device, trainer_options
+from worldenv_core.training import Trainer, pick_device, planned_steps, planned_total, trainer_options
 
 log = logging.getLogger("worldenv.train_worldsim")
 BATCHES = ("ae.batch_size", "flow.batch_size", "rollout.batch_size")
+ON_A_MODEL = ("latents_to", "latents_from", "fresh_width", "minutes")  # settings that go on from init_from's model
+# settings added after runs were made: at these values a run keeps its record's settings hash and work dir
+LATER_DEFAULTS = {"latents_to": None, "latents_from": None, "latents_every": 1, "fresh_width": None, "minutes": None,
+                  "snapshots": 1}
 
 
 def validate(cfg: DictConfig) -> None:
-    require_task(cfg)
+    require_task(cfg, registry=not cfg.latents_from)
     for key in ("ae.steps", "ae.batch_size", "flow.steps", "flow.batch_size", "log_every", "checkpoint_every",
-                "holdout_every", "worldsim.sampling_steps"):
+                "holdout_every", "worldsim.sampling_steps", "latents_every", "snapshots"):
         positive_int(cfg, key)
     positive_int(cfg, "rollout.steps", allow_zero=True)
-    positive_int(cfg, "rollout.chunks")
+    positive_int(cfg, "rollout.chunks", allow_zero=True)  # 0: teacher-forced, e.g. a fresh flow network first
     positive_int(cfg, "rollout.batch_size")
     trainer_options(cfg, *BATCHES)
-    if cfg.init_from and not cfg.rollout.steps:
-        raise ConfigError("init_from trains the open-loop phase only: give it rollout.steps > 0")
+    if given := [k for k in ON_A_MODEL if cfg.get(k) is not None] * (not cfg.init_from):
+        raise ConfigError(f"{given[0]} goes on from a trained model (its autoencoder): give init_from=<record or folder>")
+    if cfg.snapshots > 1 and not cfg.init_from:
+        raise ConfigError("snapshots keeps the model at fractions of the open-loop phase: give init_from=<record or folder>")
+    if cfg.init_from and not (cfg.rollout.steps or cfg.minutes or cfg.latents_to):
+        raise ConfigError("init_from trains the open-loop phase only: give it rollout.steps > 0 (or minutes=)")
+    if cfg.latents_to and cfg.latents_from:
+        raise ConfigError("latents_to writes a pack here, latents_from trains from one there: give one of them")
+    if cfg.minutes is not None and not cfg.minutes > 0:
+        raise ConfigError(f"minutes must be > 0 or null (rollout.steps as given), got {cfg.minutes}")
+    if cfg.fresh_width is not None and not (isinstance(cfg.fresh_width, int) and cfg.fresh_width >= 8):
+        raise ConfigError(f"fresh_width must be an integer >= 8 or null, got {cfg.fresh_width!r}")
     if cfg.camera not in cfg.task.cameras:
         raise ConfigError(f"camera {cfg.camera!r} is not one of the task's cameras {list(cfg.task.cameras)}")
     if not 0.0 <= cfg.flow.ema < 1.0:
@@ -65,23 +87,35 @@ def task_cameras(contract: TaskContract, camera: str, task_ids: list[int]) -> di
 
 
 def run(cfg: DictConfig) -> dict:
+    packed = bool(cfg.latents_from)  # a GPU host: the pack is the data, and there is no simulator
     manifest = start(cfg, validate)
-    contract = task_contract(cfg)
+    deadline = time.monotonic() + 60 * cfg.minutes if cfg.minutes else None  # this sitting's wall clock
+    contract = task_contract(cfg, registry=not packed)
     device = pick_device(cfg.device)
-    config = resolved(cfg)
+    config = {k: v for k, v in resolved(cfg).items() if not (k in LATER_DEFAULTS and v == LATER_DEFAULTS[k])}
     tags = {"task": contract.name, "scale": cfg.scale.name, "data": "expert" if cfg.expert_only else "expert+policy"}
     with StageRun(manifest, "train_worldsim", tags, config) as stage:
         base = (resolve_checkpoint(stage, cfg.init_from, "train_worldsim", contract.name, cfg.scale.name)
                 if cfg.init_from else None)
         base_model, base_meta = load_checkpoint(base, "worldsim", contract) if base else (None, None)
-        paths = collected_episodes(manifest, stage, contract.name, cfg.scale.name, cfg.expert_only)
+        paths = [] if packed else collected_episodes(manifest, stage, contract.name, cfg.scale.name, cfg.expert_only)
+        pack = read_latent_pack(cfg.latents_from, base).every(cfg.latents_every) if packed else None
+        if packed:  # by content: another pack is another training, the same one a resume
+            contract.check(pack.task, f"latent pack {cfg.latents_from}")
+            stage.record.input_files.append(manifest.artefact(cfg.latents_from, kind="latent_pack"))
         if (done := stage.finished_before()) is not None:
             return done.metrics
-        _, held, episodes, held_eps = load_split(paths, cfg.holdout_every, cfg.camera,
-                                                 base_meta["held_out"] if base else None)
+        if packed:
+            episodes, held_eps, held = pack.episodes, [], list(base_meta["held_out"])
+        else:
+            train, held_paths, episodes, held_eps = load_split(paths, cfg.holdout_every, cfg.camera,
+                                                               base_meta["held_out"] if base else None)
+            held = [episode_key(p) for p in held_paths]
+        if cfg.latents_to:
+            return pack_latents(stage, cfg, base_model, base, base_meta, episodes, [episode_key(p) for p in train], contract)
         # named by the split too, so that a work dir and the split its weights were trained on cannot disagree
-        work = work_dir(cfg.experiment_dir, "train_worldsim", {**config, "held_out": [episode_key(p) for p in held]},
-                        stage.work_inputs())
+        key = {**config, "held_out": held, **({"latents_from": stage.record.input_files[-1].sha256} if packed else {})}
+        work = work_dir(cfg.experiment_dir, "train_worldsim", key, stage.work_inputs())
         stage.lock(work)  # one run at a time trains into a work dir
         if base:  # its camera models and kinematics are part of what it learned
             cameras = {int(t): PinholeCamera.from_dict(c) for t, c in base_meta["cameras"].items()}
@@ -92,14 +126,25 @@ def run(cfg: DictConfig) -> dict:
             log.info("kinematics fitted on %d episodes: %s", len(episodes), kinematics)
 
         model_cfg = read_config(base)["model"] if base else OmegaConf.to_container(cfg.worldsim, resolve=True)
-        model = (copy.deepcopy(base_model) if base else instantiate(model_cfg, _convert_="all")).to(device)
+        start_model = base_model
+        if cfg.fresh_width:  # a new flow network on the model's autoencoder: its open-loop steps start from zero
+            model_cfg, start_model = fresh_velocity(base_model, model_cfg, cfg.fresh_width, cfg.seed)
+        model = (copy.deepcopy(start_model) if base else instantiate(model_cfg, _convert_="all")).to(device)
         ema = copy.deepcopy(model).requires_grad_(False)
         optimizers = {"ae": torch.optim.AdamW(model.autoencoder.parameters(), lr=cfg.ae.lr),
                       "flow": torch.optim.AdamW(model.velocity.parameters(), lr=cfg.flow.lr)}
+        chunks_of = ((lambda ahead: pack.chunks(model, ahead)) if packed else  # noqa: E731
+                     (lambda ahead: episode_chunks(model, episodes, device, fresh=False, chunks_ahead=ahead)))
+        if cfg.minutes:  # planned from timed steps on copies, so the run itself starts from the untouched model
+            cfg.rollout.steps = planned_total(work, cfg.minutes, lambda s: _time_rollout(model, ema, chunks_of, cameras,
+                                                                                        cfg, device, s))
+        prior = 0 if cfg.fresh_width or not base else int(base_meta.get("rollout_steps") or 0)
         meta = {"kind": "worldsim", **contract.meta(), "camera": cfg.camera, "kinematics": kinematics.to_dict(),
                 "cameras": {str(t): c.to_dict() for t, c in cameras.items()}, "episodes": len(episodes),
-                "expert_only": bool(cfg.expert_only), "held_out": [episode_key(p) for p in held],
-                "rollout_steps": int(cfg.rollout.steps), **({"init_from_step": base_meta.get("step")} if base else {})}
+                "expert_only": bool(cfg.expert_only), "held_out": held, "rollout_steps": prior + int(cfg.rollout.steps),
+                **({"init_from_step": None if cfg.fresh_width else base_meta.get("step")} if base else {}),
+                **({"trained_from": {"latent_pack": key["latents_from"][:12], "every": cfg.latents_every,
+                                     "fresh_width": cfg.fresh_width}} if packed else {})}
         trainer = Trainer(work, model, optimizers, model_config=model_cfg, meta=meta, desc="train_worldsim",
                           log_every=cfg.log_every, checkpoint_every=cfg.checkpoint_every,
                           extra_state=lambda: {"ema": ema.state_dict()},
@@ -111,24 +156,58 @@ def run(cfg: DictConfig) -> dict:
         phases = [] if base else [ae_phase(model, optimizers["ae"], frames_of, cfg, device),
                                   flow_phase(model, ema, optimizers["flow"], episodes, cameras, cfg, device)]
         if cfg.rollout.steps:
-            chunks_of = lambda ahead: episode_chunks(model, episodes, device, fresh=False, chunks_ahead=ahead)  # noqa: E731
             phases.append(rollout_phase(model, ema, optimizers["flow"], chunks_of, cameras, cfg, device))
-        log.info("training on %d episodes (%d held out): %s on %s; work dir %s", len(episodes), len(held_eps),
+        log.info("training on %d episodes (%d held out): %s on %s; work dir %s", len(episodes), len(held),
                  " + ".join(f"{p.steps} {p.name}" for p in phases), device, work)
-        trainer.fit(phases)
-        final = trainer.save_final(work / "worldsim", model=ema)
-        report = evaluate_fidelity(cfg, ema, kinematics, cameras, held_eps, work, baseline=base_model)
-        trainer.tracker.log({f"{k}_h{h}": v[k] for h, v in report["fidelity"].items()
+        trainer.fit(phases, after_step=snapshots(work, ema, model_cfg, meta, prior, cfg.rollout.steps, cfg.snapshots),
+                    deadline=deadline)
+        opened = trainer.step - sum(p.steps for p in phases if p.name != "rollout")  # phase-3 steps this run took
+        final = trainer.save_final(work / "worldsim", model=ema, rollout_steps=prior + max(0, opened))
+        if trainer.stopped_early:
+            stage.not_recorded = f"the deadline (minutes={cfg.minutes}) came at step {trainer.step}; the same command goes on"
+        report = evaluate_fidelity(cfg, ema, kinematics, cameras, held_eps, work, baseline=base_model) if held_eps else {}
+        trainer.tracker.log({f"{k}_h{h}": v[k] for h, v in report.get("fidelity", {}).items()
                              for k in ("model_psnr", "model_ssim", "copy_psnr", "copy_ssim")}, trainer.step, group="eval")
         trainer.finish(stage, final, f"train_worldsim {contract.name}")  # closes the tracker: after the eval curves
-        for name in ("fidelity.json", "fidelity.md"):
-            stage.add_output(work / name, kind="report")
-        for video in sorted((work / "videos").glob("*.gif")):
-            stage.add_output(video, kind="video")
-        for replay in write_replays(ema, kinematics, cameras, held_eps[: cfg.fidelity.videos], work / "imagined",
-                                    {"worldsim": str(final)}, cfg.seed):
-            stage.add_output(replay, kind="imagined")
-        stage.metrics.update({"episodes": len(episodes), "held_out": len(held_eps), "steps": trainer.step,
+        record_fidelity(stage, work, ema, kinematics, cameras, held_eps, final, cfg)
+        stage.metrics.update({"episodes": len(episodes), "held_out": len(held), "steps": trainer.step,
                               "train_wall_s": round(trainer.wall_s, 1), "device": str(device), **report})
         log.info("world simulator saved to %s; metrics %s", final, json.dumps(stage.metrics))
     return stage.metrics
+
+
+def record_fidelity(stage, work, ema, kinematics, cameras, held_eps, final, cfg) -> None:
+    """The fidelity report, its videos and the held-out replays as the run's outputs; with no held-out
+    episode here (a latent pack's run), where to measure it."""
+    if not held_eps:
+        log.info("no held-out episode on this host (a latent pack): measure the model where the episodes are, "
+                 "`python -m analysis.fidelity_settings <experiment> --model %s`", final)
+        return
+    for name in ("fidelity.json", "fidelity.md"):
+        stage.add_output(work / name, kind="report")
+    for video in sorted((work / "videos").glob("*.gif")):
+        stage.add_output(video, kind="video")
+    for replay in write_replays(ema, kinematics, cameras, held_eps[: cfg.fidelity.videos], work / "imagined",
+                                {"worldsim": str(final)}, cfg.seed):
+        stage.add_output(replay, kind="imagined")
+
+
+def pack_latents(stage, cfg, model, base: str, base_meta: dict, episodes, keys: list[str], contract) -> dict:
+    """`latents_to=`: the model's open-loop training set (its held-out episodes left out) as a latent
+    pack; nothing is trained, and nothing recorded (no later stage may take the export for a model)."""
+    latents = [encode_episode_frames(model, ep.images[base_meta["camera"]]) for ep in episodes]
+    out = write_latent_pack(cfg.latents_to, latents, episodes, keys, base, base_meta["camera"], contract.meta())
+    stage.not_recorded = f"it exported the training set to {out}"
+    stage.metrics.update({"latent_pack": str(out), "episodes": len(episodes), "frames": sum(len(z) for z in latents),
+                          "pack_mib": round(out.stat().st_size / 2 ** 20, 1)})
+    log.info("latent pack %s: %d episodes, %d frames, %.1f MiB (the model's %d held-out episodes left out)", out,
+             len(episodes), stage.metrics["frames"], stage.metrics["pack_mib"], len(base_meta["held_out"]))
+    return stage.metrics
+
+
+def _time_rollout(model, ema, chunks_of, cameras, cfg, device, seconds: float) -> int:
+    """How many open-loop steps fit in `seconds`, timed on copies of the model and its EMA."""
+    probe_model, probe_ema = copy.deepcopy(model), copy.deepcopy(ema)
+    probe_opt = torch.optim.AdamW(probe_model.velocity.parameters(), lr=cfg.flow.lr)
+    probe = rollout_phase(probe_model, probe_ema, probe_opt, lambda ahead: chunks_of(ahead), cameras, cfg, device)
+    return planned_steps(probe.step, iter(probe.batches(0)), seconds)

@@ -4,13 +4,17 @@ model open loop, on memory it imagined itself (the Trainer's Phases)."""
 
 from __future__ import annotations
 
+import copy
 from itertools import count
+from pathlib import Path
 
 import torch
+from hydra.utils import instantiate
 
 from worldenv_core import distributed
 from worldenv_core.kinematics.action_map import draw_action_maps_per_rollout
 from worldenv_core.kinematics.camera import PinholeCamera
+from worldenv_core.models.checkpoint import save_model
 from worldenv_core.models.worldsim_data import LatentChunks, encode_episode_frames
 from worldenv_core.training import Phase, batches, optimize, per_step, step_seed
 
@@ -124,3 +128,30 @@ def episode_chunks(model, episodes, device, fresh: bool, chunks_ahead: int = 1) 
                             if len(lat) > k])
         model.delta_scale.fill_(float(deltas.std() / z.std()))
     return LatentChunks(latents, episodes, model.memory_offsets, model.chunk, chunks_ahead)
+
+
+def fresh_velocity(base, model_cfg: dict, width: int, seed: int):
+    """-> (config, model): `base` with a newly initialised flow network of `width` (a model-size curve
+    on one autoencoder); the autoencoder and the latent and delta scales are base's (the flow works in
+    its latent space, which a latent pack holds)."""
+    cfg = {**model_cfg, "width": int(width)}
+    torch.manual_seed(seed)
+    model = instantiate(cfg, _convert_="all")
+    kept = {k: v for k, v in base.state_dict().items() if not k.startswith("velocity.")}
+    missing, unexpected = model.load_state_dict(kept, strict=False)
+    assert not unexpected and all(k.startswith("velocity.") for k in missing), (missing, unexpected)
+    return cfg, model
+
+
+def snapshots(work: Path, ema, model_cfg: dict, meta: dict, prior: int, steps: int, k: int):
+    """`after_step` keeping the EMA model at k-1 equal fractions of the run (`snapshot_<step>/`): a
+    compute curve from one run. None when k is 1."""
+    marks = {round(steps * i / k) for i in range(1, k)}
+    if not marks:
+        return None
+
+    def after(done: int) -> None:
+        if done in marks:
+            save_model(Path(work) / f"snapshot_{done}", copy.deepcopy(ema).cpu(), model_cfg,
+                       {**meta, "rollout_steps": prior + done, "step": done})
+    return after

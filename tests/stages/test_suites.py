@@ -50,7 +50,7 @@ def test_which_limit_holds_is_read_off_the_verdict_the_loop_and_the_real_referen
 
 
 def _kept_evaluation(root, suite, name, policy, termination, outcomes):
-    """An evaluation folder as `stages.evaluate.keep` leaves it: {(task, init state): success}."""
+    """An evaluation folder as `analysis.keep` leaves it: {(task, init state): success}."""
     folder = root / suite / name
     folder.mkdir(parents=True)
     (folder / "results.json").write_text(json.dumps({"policy": policy, "termination": termination, "suite": suite,

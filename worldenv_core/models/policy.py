@@ -50,6 +50,16 @@ class Normalizer(nn.Module):
         return x * self.std + self.mean
 
 
+def proprio_features(proprio: torch.Tensor, norm: Normalizer, rotation: str) -> torch.Tensor:
+    """What a policy sees of the proprio: normalised, its rotation vector replaced by the rotation
+    matrix's first two columns with `rotation="matrix"` (in [-1, 1]: not normalised)."""
+    normed = norm(proprio)
+    if rotation == "vector":
+        return normed
+    columns = axis_angle_to_matrix(proprio[..., 3:6].float())[..., :2].flatten(-2)
+    return torch.cat([normed[..., :3], columns, normed[..., 6:]], dim=-1)
+
+
 class LaplacePolicy(nn.Module):
     """Args:
         backbone: an image backbone (see backbones.py) built for `cameras`.
@@ -93,13 +103,7 @@ class LaplacePolicy(nn.Module):
                                      self.lang_proj(instruction)], dim=-1))
 
     def proprio_features(self, proprio: torch.Tensor) -> torch.Tensor:
-        """What the proprio projection sees: the normalised proprio, its rotation vector replaced by
-        the rotation matrix's first two columns with `proprio_rotation="matrix"`."""
-        normed = self.proprio_norm(proprio)
-        if self.proprio_rotation == "vector":
-            return normed
-        columns = axis_angle_to_matrix(proprio[..., 3:6].float())[..., :2].flatten(-2)
-        return torch.cat([normed[..., :3], columns, normed[..., 6:]], dim=-1)
+        return proprio_features(proprio, self.proprio_norm, self.proprio_rotation)
 
     def forward(self, images, proprio, instruction) -> tuple[torch.Tensor, torch.Tensor]:
         """-> mu, beta, each (B, K, action_dim), in normalised action space."""

@@ -209,7 +209,7 @@ def ppo_update(policy, optimizer, batch: RolloutBatch, epochs: int, epsilon: flo
     its direction to be the reward's, towards 1 as it grows (with a signal s and per-group noise,
     cos ~ B|s|^2 / (B|s|^2 + 2 sigma^2) over B groups, so it says how many groups would do).
     `ppo_steps` counts the steps taken."""
-    if target_kl is not None and not target_kl > 0:  # as ppo_loss checks epsilon: from_pack reaches here unvalidated
+    if target_kl is not None and not target_kl > 0:  # as ppo_loss checks epsilon: a caller outside the stage reaches here unvalidated
         raise ValueError(f"target_kl must be > 0 or None (no limit), got {target_kl}")
     if max_kl is not None and not max_kl > 0:
         raise ValueError(f"max_kl must be > 0 or None (no trust region), got {max_kl}")

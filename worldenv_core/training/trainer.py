@@ -30,6 +30,7 @@ from tqdm import tqdm
 from worldenv_core.models.checkpoint import save_model
 from worldenv_core import distributed
 from worldenv_core.errors import Interrupted
+from worldenv_core.files import write_text_atomic
 from worldenv_core.training.checkpoints import Checkpoints
 from worldenv_core.tracking import Tracker
 from worldenv_core.viz import plot_history
@@ -240,15 +241,13 @@ class Trainer:
         self.tracker.log(values, step, group="eval")
 
     def save_final(self, path: str | Path, model: torch.nn.Module | None = None, **meta) -> Path:
-        """The trained model (or another one, e.g. its EMA) as a self-describing checkpoint folder."""
-        return save_model(path, (model or self.model).cpu(), self.model_config, {**self.meta, "step": self.step, **meta})
-
-    def close_off(self, plot: str, title: str) -> Path:
-        """Off the manifest (the from-pack entry points): close the tracker, write the history and
-        draw the curves in the work dir. -> the plot."""
-        self.tracker.close()
-        (self.work / "history.json").write_text(json.dumps(self.history))
-        return plot_history(self.history, self.work / plot, title)
+        """The trained model (or another one, e.g. its EMA) as a self-describing checkpoint folder; a
+        LeRobot policy (`save_lerobot`) also in LeRobot's own layout inside it (`lerobot/`), for its loaders."""
+        model = (model or self.model).cpu()
+        folder = save_model(path, model, self.model_config, {**self.meta, "step": self.step, **meta})
+        if hasattr(model, "save_lerobot"):
+            model.save_lerobot(Path(folder) / "lerobot")
+        return folder
 
     def finish(self, stage, final: Path, title: str, plot: str = "losses.png") -> Path:
         """Close the tracker, draw the curves and record the final checkpoint and the plot as the
@@ -261,22 +260,22 @@ class Trainer:
         return figure
 
 
-def planned_total(work: Path, steps: int | None, minutes: float | None, time_steps: Callable[[float], int],
-                  overrides: list[str]) -> int:
-    """The total steps of a from-pack run (`--steps` or `--minutes`): given, or timed on this machine
-    (`time_steps(seconds)`, e.g. `planned_steps` on copies of the model); written to the work dir so a
-    re-run resumes to the total it first planned."""
+def planned_total(work: Path, minutes: float, time_steps: Callable[[float], int]) -> int:
+    """The total steps of a run sized by time (`minutes=`): timed on this machine (`time_steps(seconds)`,
+    e.g. `planned_steps` on copies of the model), and written to the work dir so that a re-run resumes
+    to the total it first planned."""
     plan = Path(work) / "plan.json"
     if plan.exists():
         return json.loads(plan.read_text())["steps"]
-    total = steps or time_steps(minutes * 60)
-    plan.write_text(json.dumps({"steps": total, "overrides": overrides, "minutes": minutes}))
+    total = time_steps(minutes * 60)
+    plan.parent.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(plan, json.dumps({"steps": total, "minutes": minutes}))
     return total
 
 
 def planned_steps(step_fn, batches, seconds: float, probe: int = 12, warm: int = 3) -> int:
     """How many steps fit in `seconds`, from the median of `probe` timed steps after `warm` untimed
-    ones (`--minutes` of the from-pack entry points; run it on copies of the model and optimizer)."""
+    ones (`minutes=` of the stages; run it on copies of the model and optimizer)."""
     times = []
     for i in range(probe + warm):
         t0 = time.perf_counter()
@@ -290,8 +289,11 @@ def planned_steps(step_fn, batches, seconds: float, probe: int = 12, warm: int =
 
 def record_checkpoint(stage, folder: Path) -> None:
     """Every file of a checkpoint folder as a `checkpoint` output of the stage's manifest record."""
-    for f in sorted(Path(folder).iterdir()):
-        stage.add_output(f, kind="checkpoint")
+    files = sorted(Path(folder).rglob("*"), key=lambda p: (len(p.parts), p))  # its own files first
+    for f in (p for p in files if p.is_file()):
+        # a LeRobot layout inside it (`lerobot/`) is recorded too, as its own kind: the folder's own files
+        # are what stages take for the checkpoint
+        stage.add_output(f, kind="checkpoint" if f.parent == Path(folder) else "lerobot_checkpoint")
 
 
 def _phase_at(phases: list[Phase], step: int) -> tuple[Phase, int]:

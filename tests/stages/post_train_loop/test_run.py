@@ -227,13 +227,14 @@ def test_rollouts_start_part_way_through_the_collected_episodes(trained):
 
 
 def test_loop_from_a_context_pack_trains_as_the_stage_does_without_episodes_or_encoder(trained, tmp_path):
-    """The GPU route: the contexts packed with their instruction embeddings, LOOP run off them (no
-    MCAP, simulator or instruction encoder needed) into the policy the stage itself trains from the
-    same contexts and seed; resumable; a pack of something else is refused."""
+    """The GPU route, as settings of the stage: `contexts_to=` packs the contexts it would train from
+    with their instruction embeddings; `contexts_from=` runs LOOP off them in an experiment with no
+    episode (no MCAP, simulator or instruction encoder needed) into the policy the stage trains from
+    the same contexts and seed; resumable; a pack of something else is refused."""
     import torch
 
-    from stages.post_train_loop import context_pack, from_pack
     from stages.post_train_loop.training import contexts_from_episodes
+    from worldenv_core.imagination.context_pack import read_context_pack
     from worldenv_core.models.text import InstructionEncoder
 
     exp, _ = trained
@@ -244,39 +245,54 @@ def test_loop_from_a_context_pack_trains_as_the_stage_does_without_episodes_or_e
     inputs = {m.get(i).stage: m.get(i) for i in rec.inputs}
     folder = lambda stage_name: next(p.parent for p in m.resolve(inputs[stage_name])  # noqa: E731
                                      if p.name == "model.safetensors")
+    models = [f"policy_from={folder('train_policy')}", f"worldsim_from={folder('train_worldsim')}",
+              f"reflector_from={folder('train_reflector')}"]
+    records = len(m.records())
+    packed = post_train_loop(cfg("post_train_loop", exp, "expert_only=true", *settings, *models,
+                                 f"contexts_to={tmp_path / 'contexts.st'}"))
+    assert len(Manifest(exp).records()) == records  # an export: no record a later stage could take for a policy
+    pack = read_context_pack(tmp_path / "contexts.st")
     episodes = sorted(p for p in m.resolve(inputs["collect"], kind="episodes") if p.suffix == ".mcap")
-    pack = context_pack.main([str(p) for p in episodes] + ["--out", str(tmp_path / "contexts.st")])
-    contexts, keys, encoder, camera = context_pack.read_context_pack(pack)
-    want, starts = contexts_from_episodes(episodes, camera)
-    assert keys == [st.key for st in starts] and len(contexts) == len(want) == stage["contexts"]
+    want, starts = contexts_from_episodes(episodes, pack.camera)
+    assert pack.keys == [st.key for st in starts] and len(pack.contexts) == len(want) == stage["contexts"] == packed["contexts"]
     assert all(torch.equal(a.frame, b.frame) and torch.equal(a.proprio, torch.as_tensor(b.proprio, dtype=torch.float64))
-               and a.instruction == b.instruction and a.task_id == b.task_id for a, b in zip(contexts, want))
-    text = contexts[0].instruction
-    assert torch.allclose(encoder([text]), InstructionEncoder()([text]))
+               and a.instruction == b.instruction and a.task_id == b.task_id for a, b in zip(pack.contexts, want))
+    text = pack.contexts[0].instruction
+    assert torch.allclose(pack.encoder([text]), InstructionEncoder()([text]))
     with pytest.raises(KeyError, match="no embedding"):
-        encoder(["open the fridge"])
+        pack.encoder(["open the fridge"])
 
-    args = [str(pack), "--policy", str(folder("train_policy")), "--worldsim", str(folder("train_worldsim")),
-            "--reflector", str(folder("train_reflector")), "--work", str(tmp_path / "w"), "--iterations", "2",
-            "scale=tiny", "eval.every=0", *settings]
-    final = from_pack.main(args)
+    gpu = tmp_path / "gpu"  # an experiment with no collection: the pack is all the contexts there are
+    there = ["eval.every=0", *settings, *models, f"contexts_from={tmp_path / 'contexts.st'}"]
+    post_train_loop(cfg("post_train_loop", gpu, *there))
+    g = Manifest(gpu)
+    done = g.latest("post_train_loop", task="tiny")
+    final = next(p.parent for p in g.resolve(done) if p.name == "model.safetensors")
     tuned, meta = load_checkpoint(final, "policy", None)
-    assert meta["trained_from"]["contexts"] == len(contexts) and meta["iteration"] == 2
+    assert meta["trained_from"]["contexts"] == len(pack.contexts) and meta["iteration"] == 2
+    assert any(f.kind == "context_pack" for f in done.input_files)
     ours = load_checkpoint(next(p.parent for p in m.resolve(rec) if p.name == "model.safetensors"), "policy", None)[0]
     assert all(torch.allclose(v, ours.state_dict()[k], atol=1e-6) for k, v in tuned.state_dict().items())
-    history = json.loads((tmp_path / "w" / "history.json").read_text())
+    history = json.loads((final.parent / "training.json").read_text())
     assert [h["step"] for h in history if "imagined_success" in h] == [0, 2]
+    assert not any("real_success" in h or "validation_success" in h for h in history)  # no simulator there
     weights = (final / "model.safetensors").read_bytes()
-    from_pack.main(args)  # the same command again: resumes at the end, trains nothing
+    post_train_loop(cfg("post_train_loop", gpu, *there))  # the same command again: finished before, trains nothing
     assert (final / "model.safetensors").read_bytes() == weights
-    with pytest.raises(ValueError, match="not a context pack"):
-        from_pack.main([str(folder("train_policy") / "model.safetensors"), *args[1:]])
+    with pytest.raises(ConfigError, match="not a context pack"):
+        post_train_loop(cfg("post_train_loop", tmp_path / "gpu2", *there[:-1],
+                            f"contexts_from={folder('train_policy') / 'model.safetensors'}"))
+    with pytest.raises(ConfigError, match="mid_episode_frames"):
+        post_train_loop(cfg("post_train_loop", tmp_path / "gpu2", *there, "rl.mid_episode_frames=2"))
+    with pytest.raises(ConfigError, match="env=imagined"):
+        post_train_loop(cfg("post_train_loop", tmp_path / "gpu2", *there, "env=real"))
+    work = final.parent
 
     # measured back here, as a point of a sweep: real success against the starting policy's on the same
     # episodes, and the paired hack rate of both from the evaluate_imagination run that replayed them
     from stages.evaluate.run import run as evaluate
     from stages.evaluate_imagination.run import run as evaluate_imagination
-    from stages.post_train_loop import sweep_packs
+    from analysis import sweep_packs
 
     real = ["termination=oracle", "init_states=2", "workers=1", "progress=false", "videos_per_task=0"]
     evaluate(cfg("evaluate", exp, f"policy_from={folder('train_policy')}", *real))
@@ -285,9 +301,9 @@ def test_loop_from_a_context_pack_trains_as_the_stage_does_without_episodes_or_e
     evaluate_imagination(cfg("evaluate_imagination", exp, f"policies=[{folder('train_policy')},{final}]",
                              "paired_policies=2", "horizon=16", "contexts.init_states=1", "contexts.episodes_per_task=0",
                              "rollouts=2", "closed_loop_rollouts=0", "gifs=0", "workers=1", "progress=false"))
-    sweep_packs.main([str(exp), "--packs", str(tmp_path / "w"), "--baseline", start, "--out", str(tmp_path / "summary")])
+    sweep_packs.main([str(exp), "--packs", str(work), "--baseline", start, "--out", str(tmp_path / "summary")])
     row, = json.loads((tmp_path / "summary" / "sweep_summary.json").read_text())
-    assert (row["eta"], row["n_rollouts"], row["iterations"], row["run"]) == (0.5, 2, 2, "w")
+    assert (row["eta"], row["n_rollouts"], row["iterations"], row["run"]) == (0.5, 2, 2, work.name)
     assert row["real_episodes"] == m.get(start).metrics["episodes"] and row["real_p"] is not None
     assert row["real_records"] == [m.latest("evaluate", task="tiny").id]
     assert row["real_success_first"] == m.get(start).metrics["success_rate"]

@@ -4,7 +4,7 @@ from pathlib import Path
 
 import pytest
 from stages.collect.run import run as collect
-from stages.evaluate import keep, paired
+from analysis import keep, paired
 from stages.evaluate.run import run as evaluate
 from stages.train_policy.run import run as train_policy
 from worldenv_core.data.mcap_io import read_episode
@@ -171,3 +171,34 @@ def test_a_later_init_state_range_pools_with_the_first_into_one_paired_compariso
                      if r.metrics.get("report_dir") == oracle["report_dir"])
     with pytest.raises(ConfigError, match="not the same episodes"):
         paired.main([str(exp), "--a", oracle_id, "--b", first_id])
+
+
+def test_a_lerobot_act_policy_trains_and_evaluates_through_the_same_stages(experiment):
+    """`policy=lerobot_act`: LeRobot's ACT trained by train_policy's two phases from the same demos, its
+    folder also in LeRobot's own layout (ACTPolicy.from_pretrained reads it), evaluated by `evaluate`.
+    (Last in this file: it becomes the experiment's latest train_policy.)"""
+    import torch
+    from lerobot.policies.act.modeling_act import ACTPolicy
+
+    from worldenv_core.models.checkpoint import load_checkpoint
+
+    exp, _, _ = experiment
+    act = ["policy=lerobot_act", "policy.dim_model=16", "policy.n_heads=2", "policy.dim_feedforward=32",
+           "policy.n_encoder_layers=1", "train.steps=4", "scale_head.steps=2", "train.log_every=2",
+           "train.checkpoint_every=2", "demos_per_task=1"]
+    metrics = train_policy(cfg("train_policy", exp, *act))
+    m = Manifest(exp)
+    rec = m.latest("train_policy", task="tiny", scale="tiny")
+    folder = next(p for p in m.resolve(rec) if p.name == "model.safetensors").parent
+    assert metrics["final_l1"] is not None and metrics["final_nll"] is not None
+    assert (folder / "lerobot" / "config.json").exists() and len(rec.files("lerobot_checkpoint")) == 2  # recorded
+    policy, meta = load_checkpoint(folder, "policy")
+    assert type(policy).__name__ == "ACTLaplacePolicy" and meta["chunk"] == policy.chunk
+    native = ACTPolicy.from_pretrained(folder / "lerobot").eval()
+    images = {"agentview": torch.randint(0, 256, (1, 3, 64, 64), dtype=torch.uint8)}
+    batch = policy.inputs(images, torch.zeros(1, 7), torch.zeros(1, 384))
+    assert torch.allclose(native.model(batch)[0], policy(images, torch.zeros(1, 7), torch.zeros(1, 384))[0], atol=1e-5)
+    out = evaluate(cfg("evaluate", exp, f"policy_from={folder}", "termination=oracle", "init_states=1", "workers=1",
+                       "progress=false", "videos_per_task=0"))
+    (row,) = out["per_task"]
+    assert row["n"] == 1 and 0.0 <= out["success_rate"] <= 1.0

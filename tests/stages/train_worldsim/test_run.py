@@ -63,7 +63,7 @@ def test_train_worldsim_records_checkpoint_fidelity_and_resumes(demo_experiment,
 
 
 def test_fidelity_tool_reproduces_the_recorded_report_and_sweeps_the_detail_gate(demo_experiment):
-    from stages.train_worldsim.fidelity import main as fidelity
+    from analysis.fidelity_settings import main as fidelity
 
     train_worldsim(cfg(demo_experiment, "expert_only=true"))  # (resumes the finished run of the test above)
     m = Manifest(demo_experiment)
@@ -121,45 +121,51 @@ def expert_only_model(exp):
 
 def test_latent_pack_trains_open_loop_off_the_episodes_and_refuses_another_autoencoder(demo_experiment, contract,
                                                                                           tmp_path):
-    """The GPU route of phase 3: the training episodes packed as the model's latents, trained on with
-    no episode or simulator at hand, into a checkpoint like `init_from`'s (resumable, snapshots)."""
+    """The GPU route of phase 3, as settings of the stage: `latents_to=` packs the model's training
+    episodes as its latents here; `latents_from=` trains on them in an experiment with no episode (a
+    GPU host) into a checkpoint like `init_from`'s: resumable, snapshots, the pack recorded by content."""
     import shutil
 
     import torch
     from safetensors.torch import load_file, save_file
 
-    from stages.train_worldsim import from_pack, latent_pack
     from worldenv_core.models.checkpoint import CheckpointError
+    from worldenv_core.models.latent_pack import read_latent_pack
 
     exp = demo_experiment
     base = expert_only_model(exp)
     start, start_meta = load_checkpoint(base, "worldsim", contract())
-    pack = latent_pack.main([str(base), str(exp / "data" / "*" / "*" / "*" / "*.mcap"), "--out", str(tmp_path / "pack.st")])
-    latents, episodes, meta = latent_pack.read_pack(pack, base)
-    keys = json.loads(meta["keys"])
-    assert len(keys) == len(episodes) == 1 and keys[0] not in start_meta["held_out"]  # 2 demos, 1 held out
-    real = read_episode(next((exp / "data").rglob(keys[0].split("/")[-1])), cameras=["agentview"])
-    assert np.array_equal(episodes[0].actions, real.actions) and len(latents[0]) == real.num_frames
+    records = len(Manifest(exp).records())
+    packed = train_worldsim(cfg(exp, "expert_only=true", f"init_from={base}", f"latents_to={tmp_path / 'pack.st'}"))
+    pack = read_latent_pack(tmp_path / "pack.st", base)
+    assert packed["episodes"] == len(pack.keys) == 1 and pack.keys[0] not in start_meta["held_out"]  # 2 demos, 1 held out
+    assert len(Manifest(exp).records()) == records  # an export: no record a later stage could take for a model
+    real = read_episode(next((exp / "data").rglob(pack.keys[0].split("/")[-1])), cameras=["agentview"])
+    assert np.array_equal(pack.episodes[0].actions, real.actions) and len(pack.latents[0]) == real.num_frames
     with torch.no_grad():
         want = start.autoencoder.encode(torch.from_numpy(real.images["agentview"]).permute(0, 3, 1, 2))
-    assert torch.allclose(latents[0], want, atol=2e-3 * float(want.abs().max()))  # stored as fp16
+    assert torch.allclose(pack.latents[0], want, atol=2e-3 * float(want.abs().max()))  # stored as fp16
 
-    args = [str(pack), str(base), "--work", str(tmp_path / "w"), "--steps", "4", "--snapshots", "2",
-            "rollout.chunks=2", "rollout.batch_size=4", "log_every=1", "checkpoint_every=2"]
-    final = from_pack.main(args)
+    gpu = tmp_path / "gpu"  # an experiment with no collection: the pack is all the data there is
+    there = ["expert_only=true", f"init_from={base}", f"latents_from={tmp_path / 'pack.st'}", "rollout.steps=4",
+             "snapshots=2", "rollout.chunks=2", "rollout.batch_size=4", "log_every=1", "checkpoint_every=2"]
+    metrics = train_worldsim(cfg(gpu, *there))
+    rec = Manifest(gpu).latest("train_worldsim", task="tiny")
+    final = next(p for p in Manifest(gpu).resolve(rec) if p.name == "model.safetensors").parent
+    assert metrics["steps"] == 4 and "fidelity" not in metrics  # no held-out episode on that host
+    assert any(f.kind == "latent_pack" for f in rec.input_files)
     model, meta = load_checkpoint(final, "worldsim", contract())
     assert meta["held_out"] == start_meta["held_out"] and meta["kinematics"] == start_meta["kinematics"]
-    assert meta["rollout_steps"] == 4 and meta["rollout_chunks"] == 2 and meta["trained_from"]["episodes"] == 1
+    assert meta["rollout_steps"] == 4 and meta["episodes"] == 1 and meta["trained_from"]["every"] == 1
     tuned = model.state_dict()
     assert all(torch.equal(v, tuned[n]) for n, v in start.state_dict().items() if not n.startswith("velocity."))
     assert any(not torch.equal(v, tuned[n]) for n, v in start.state_dict().items() if n.startswith("velocity."))
-    assert load_checkpoint(tmp_path / "w" / "snapshot_2", "worldsim", contract())[1]["rollout_steps"] == 2
-    assert (tmp_path / "w" / "losses.png").exists() and list((tmp_path / "w" / "tensorboard").glob("events.*"))
-    weights = (final / "model.safetensors").read_bytes()
-    from_pack.main(args)  # the same command again: resumes at the end, trains nothing
-    assert (final / "model.safetensors").read_bytes() == weights
+    assert load_checkpoint(final.parent / "snapshot_2", "worldsim", contract())[1]["rollout_steps"] == 2
+    assert list((final.parent / "tensorboard").glob("events.*"))
+    again = train_worldsim(cfg(gpu, *there))  # the same command again: finished before, nothing trained
+    assert again["train_wall_s"] == metrics["train_wall_s"]
     # a model trained on from the packed one keeps its autoencoder, so the pack still serves it ...
-    assert latent_pack.read_pack(pack, final)[2]["keys"] == json.dumps(keys)
+    assert read_latent_pack(tmp_path / "pack.st", final).keys == pack.keys
     # ... but one with another autoencoder would read the pack's latents as its own: refused
     other = tmp_path / "other"
     shutil.copytree(base, other)
@@ -168,38 +174,50 @@ def test_latent_pack_trains_open_loop_off_the_episodes_and_refuses_another_autoe
     state[name] = state[name] + 1e-3
     save_file(state, str(other / "model.safetensors"))
     with pytest.raises(CheckpointError, match="another autoencoder"):
-        from_pack.main([str(pack), str(other), "--work", str(tmp_path / "w2"), "--steps", "1"])
+        train_worldsim(cfg(tmp_path / "gpu2", *[o for o in there if not o.startswith("init_from")], f"init_from={other}"))
 
 
-def test_from_pack_trains_a_fresh_flow_network_of_another_width_on_the_same_autoencoder(demo_experiment, contract,
-                                                                                        tmp_path):
-    """The world model's model-size curve: `--width` swaps in a new flow network, keeps the latent space."""
+def test_from_a_latent_pack_a_fresh_flow_network_of_another_width_and_a_deadline(demo_experiment, contract, tmp_path):
+    """The world model's model-size curve: `fresh_width=` swaps in a new flow network and keeps the
+    latent space; `minutes=` plans the steps from timed ones and stops, saved, at the deadline, with
+    no record claiming a finished run (the same command goes on)."""
     import torch
 
-    from stages.train_worldsim import from_pack, latent_pack
     from worldenv_core.models.checkpoint import read_config
+    from worldenv_core.stage import ConfigError
 
     exp = demo_experiment
     base = expert_only_model(exp)
     start, _ = load_checkpoint(base, "worldsim", contract())
-    pack = latent_pack.main([str(base), str(exp / "data" / "*" / "*" / "*" / "*.mcap"), "--out", str(tmp_path / "p.st")])
+    train_worldsim(cfg(exp, "expert_only=true", f"init_from={base}", f"latents_to={tmp_path / 'p.st'}"))
     width = start.velocity.width // 2
-    final = from_pack.main([str(pack), str(base), "--work", str(tmp_path / "w"), "--steps", "2", "--width", str(width),
-                            "rollout.chunks=0", "rollout.batch_size=4"])
+    there = ["expert_only=true", f"init_from={base}", f"latents_from={tmp_path / 'p.st'}", "rollout.chunks=0",
+             "rollout.batch_size=4"]
+    train_worldsim(cfg(tmp_path / "gpu", *there, "rollout.steps=2", f"fresh_width={width}"))
+    m = Manifest(tmp_path / "gpu")
+    final = next(p for p in m.resolve(m.latest("train_worldsim", task="tiny")) if p.name == "model.safetensors").parent
     model, meta = load_checkpoint(final, "worldsim", contract())
     assert read_config(final)["model"]["width"] == model.velocity.width == width
-    assert meta["rollout_steps"] == 2 and meta["trained_from"]["fresh_width"] == width
+    assert meta["rollout_steps"] == 2 and meta["trained_from"]["fresh_width"] == width and meta["init_from_step"] is None
     fresh = model.state_dict()
     assert all(torch.equal(v, fresh[n]) for n, v in start.state_dict().items() if not n.startswith("velocity."))
     assert sum(p.numel() for p in model.velocity.parameters()) < sum(p.numel() for p in start.velocity.parameters())
-    assert latent_pack.read_pack(pack, final)  # the same autoencoder: the pack serves the new model too
-    with pytest.raises(SystemExit, match="--every"):
-        from_pack.main([str(pack), str(base), "--work", str(tmp_path / "w2"), "--steps", "1", "--every", "0"])
+
+    timed = train_worldsim(cfg(tmp_path / "gpu3", *there, "minutes=0.001"))  # the plan and the deadline: ~60 ms
+    plan = json.loads(next((tmp_path / "gpu3" / "train_worldsim").glob("*/plan.json")).read_text())
+    assert plan["minutes"] == 0.001 and 1 <= timed["steps"] <= plan["steps"]
+    if timed["steps"] < plan["steps"]:  # stopped at the deadline: saved, not recorded as finished
+        assert not Manifest(tmp_path / "gpu3").find("train_worldsim")
+    for override, match in (("latents_every=0", "latents_every"), ("fresh_width=4", "fresh_width")):
+        with pytest.raises(ConfigError, match=match):
+            train_worldsim(cfg(tmp_path / "gpu4", *there, "rollout.steps=1", override))
+    with pytest.raises(ConfigError, match="init_from"):
+        train_worldsim(cfg(tmp_path / "gpu4", f"latents_from={tmp_path / 'p.st'}"))
 
 
 def test_refit_kinematics_keeps_the_weights_and_scores_the_fit_on_held_out_episodes(demo_experiment, contract,
                                                                                    tmp_path):
-    from stages.train_worldsim import refit_kinematics
+    from analysis import refit_kinematics
     from worldenv_core.kinematics.next_state import NextStateModel
 
     exp = demo_experiment

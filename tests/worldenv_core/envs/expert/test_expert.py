@@ -1,4 +1,6 @@
-"""The privileged scripted expert solves real LIBERO tasks from their BDDL goals (physics only)."""
+"""The privileged scripted expert solves real LIBERO tasks from their BDDL goals (physics only):
+through `expert_attempt` this runs worldenv_core.envs.expert (planner, context, motion, grasping,
+pick_place, push)."""
 import numpy as np
 import pytest
 

@@ -4,8 +4,8 @@ import json
 
 import pytest
 
-from stages.evaluate import keep
-from stages.evaluate_imagination.pooled import pooled
+from analysis import keep
+from analysis.pooled_verdicts import pooled
 from tests.worldenv_core.imagination.test_verdict import _row
 from worldenv_core.errors import ArtefactError, ConfigError
 from worldenv_core.manifest import Manifest, StageRecord

@@ -3,7 +3,7 @@ import json
 
 import pytest
 
-from stages.evaluate_imagination.pooled import pooled
+from analysis.pooled_verdicts import pooled
 from tests.worldenv_core.imagination.test_verdict import _row
 from worldenv_core.errors import ConfigError
 from worldenv_core.imagination.verdict import as_judged_by, verdict_metrics

@@ -1,13 +1,13 @@
 """Keep evaluations in the repository, without machine paths, under `<into>/<record id>/`:
 
 * an `evaluate` record: its `results.json` and `episodes.json` (every episode's outcome, a few tens
-  of KB), so a later paired test (`stages.evaluate.paired - --a results/...`) needs neither the
+  of KB), so a later paired test (`analysis.paired - --a results/...`) needs neither the
   experiment nor a re-run of the baseline;
 * an `evaluate_imagination` record: its `fidelity.json` and `pairs.json` (every pair's scores and
-  outcomes), checked against the hashes the manifest recorded, so `stages.evaluate_imagination.pooled`
+  outcomes), checked against the hashes the manifest recorded, so `analysis.pooled_verdicts`
   and a later re-judging read them from the repository.
 
-    python -m stages.evaluate.keep outputs/release-goal evaluate-24436df546de ... --into results/libero_goal
+    python -m analysis.keep outputs/release-goal evaluate-24436df546de ... --into results/libero_goal
 """
 
 from __future__ import annotations

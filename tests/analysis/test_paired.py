@@ -1,10 +1,10 @@
-"""`python -m stages.evaluate.paired`: two policies' kept evaluations, pooled per side and paired by
+"""`python -m analysis.paired`: two policies' kept evaluations, pooled per side and paired by
 (task, init state), with the exact McNemar test."""
 import json
 
 import pytest
 
-from stages.evaluate.paired import main
+from analysis.paired import main
 from tests.stages.test_suites import _kept_evaluation
 from worldenv_core.errors import ConfigError
 

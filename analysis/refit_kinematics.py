@@ -7,7 +7,7 @@ checkpoint, and `init_from=` carries it on; this refits it on the episodes given
 held-out ones left out, writes a copy of the checkpoint with the new fit beside the old one's
 open-loop state errors on the held-out episodes, and prints both.
 
-    python -m stages.train_worldsim.refit_kinematics checkpoints/libero_goal/worldsim_open_loop \\
+    python -m analysis.refit_kinematics checkpoints/libero_goal/worldsim_open_loop \\
         'data/libero_goal/expert-73fe2c9a/task*/*.mcap' --out outputs/worldsim_open_loop_refit
 """
 

@@ -4,7 +4,7 @@ and by every further reflector that judged all of them, with 95 % intervals over
 named by its output folder (`fidelity.json` and `pairs.json`, as the stage writes them and as kept under
 `results/`).
 
-    python -m stages.evaluate_imagination.pooled results/libero_goal/evaluate_imagination-8a69c60e37e8 \\
+    python -m analysis.pooled_verdicts results/libero_goal/evaluate_imagination-8a69c60e37e8 \\
         results/libero_goal/evaluate_imagination-5f94c0bd948b
 """
 

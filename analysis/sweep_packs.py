@@ -1,10 +1,11 @@
-"""The sweep summary (`sweep.write_summary`) of a sweep run as `from_pack` jobs (one work dir per
-point, on a GPU host), measured back where the simulator is: each point's real success from the
-experiment's `evaluate` records of its policy, paired with the starting policy's evaluation on the
-same episodes (McNemar), and its paired hack rate from the `evaluate_imagination` record that
-replayed it at its eta (the starting policy's from the same record).
+"""The sweep summary (`stages.post_train_loop.sweep.write_summary`) of a sweep run from a context
+pack on a GPU host (`python -m stages.post_train_loop -m contexts_from=<pack> eta=... rl.n_rollouts=...`,
+one work dir per point, fetched back), measured back where the simulator is: each point's real
+success from the experiment's `evaluate` records of its policy, paired with the starting policy's
+evaluation on the same episodes (McNemar), and its paired hack rate from the `evaluate_imagination`
+record that replayed it at its eta (the starting policy's from the same record).
 
-    python -m stages.post_train_loop.sweep_packs outputs/libero_object-small --packs <work dirs> \\
+    python -m analysis.sweep_packs outputs/libero_object-small --packs <work dirs> \\
         --baseline results/libero_object/evaluate-329fcc83d07b --out <folder>
 """
 
@@ -22,11 +23,10 @@ from stages.post_train_loop.sweep import write_summary
 from worldenv_core.imagination.verdict import verdict_metrics
 from worldenv_core.manifest import Manifest, sha256_file
 from worldenv_core.models.checkpoint import WEIGHTS, read_config
-from worldenv_core.stage import compose_config
 
 
 def pack_rows(manifest: Manifest, packs: list[Path], baseline: list[str]) -> list[dict]:
-    """Summary rows of `from_pack` work dirs, one per point of a sweep, measured in `manifest`'s
+    """Summary rows of post_train_loop work dirs trained from a context pack, one per point of a sweep, measured in `manifest`'s
     experiment. `baseline`: the starting policy's evaluation (record ids or kept folders, pooled)."""
     base, _ = pooled_episodes(manifest, baseline)
     records = manifest.records()
@@ -46,8 +46,7 @@ def pack_rows(manifest: Manifest, packs: list[Path], baseline: list[str]) -> lis
     for work in packs:
         work = Path(work)
         meta = read_config(work / "policy")["meta"]
-        plan = json.loads((work / "plan.json").read_text())
-        cfg = compose_config("post_train_loop", [f"+task={meta['task']}", *plan["overrides"]])
+        n_rollouts = json.loads((work / "run_config.json").read_text())["rl"]["n_rollouts"]
         eta, own = meta["trained_from"]["eta"], weights(str(work / "policy"))
         # real success: every oracle evaluation of this folder, pooled (else of a copy of its weights elsewhere),
         # against the baseline on the same episodes
@@ -55,12 +54,12 @@ def pack_rows(manifest: Manifest, packs: list[Path], baseline: list[str]) -> lis
         evals = [rid for rid, _, resolved in oracle if resolved == here]
         evals = evals or [rid for rid, policy, _ in oracle if weights(policy) == own][-1:]
         real = compare(base, pooled_episodes(manifest, evals)[0]) if evals else None
-        history = json.loads((work / "history.json").read_text())
+        history = json.loads((work / "training.json").read_text())
         imagined = [h for h in history if "imagined_reward" in h]
-        trained = [h for h in json.loads((work / "training.json").read_text()) if "kept_groups" in h]
+        trained = [h for h in history if "kept_groups" in h]
         start = weights(meta["post_trained_from"])
         hack_first, hack_last, replays = _hack_rates(manifest, records, eta, start, own)
-        rows.append({"eta": eta, "n_rollouts": int(cfg.rl.n_rollouts), "run": work.name, "iterations": meta["iteration"],
+        rows.append({"eta": eta, "n_rollouts": int(n_rollouts), "run": work.name, "iterations": meta["iteration"],
                      "kept_groups": float(np.mean([h["kept_groups"] for h in trained])) if trained else None,
                      "real_success_first": real and real["a"], "real_success_last": real and real["b"],
                      "real_episodes": real and real["episodes"], "real_only_first": real and real["only_a"],
@@ -93,9 +92,9 @@ def _hack_rates(manifest: Manifest, records, eta: float, start: str, own: str):
 
 
 def main(argv: list[str] | None = None) -> Path:
-    p = argparse.ArgumentParser(description="The summary of a sweep run as from_pack jobs (see the module's doc)")
+    p = argparse.ArgumentParser(description="The summary of a sweep run from a context pack (see the module's doc)")
     p.add_argument("experiment_dir", help="where the points' evaluate and evaluate_imagination records are")
-    p.add_argument("--packs", nargs="+", required=True, help="the from_pack work dirs, one per point")
+    p.add_argument("--packs", nargs="+", required=True, help="the post_train_loop work dirs, one per point")
     p.add_argument("--baseline", nargs="+", required=True, help="the starting policy's oracle evaluation(s)")
     p.add_argument("--out", required=True, help="folder for sweep_summary.{json,md,png}")
     args = p.parse_args(argv)

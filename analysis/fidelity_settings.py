@@ -1,11 +1,11 @@
 """Re-measure a trained world simulator's open-loop fidelity with other render settings.
 
-    python -m stages.train_worldsim.fidelity outputs/libero_goal-small [--record ID] [--model FOLDER]
+    python -m analysis.fidelity_settings outputs/libero_goal-small [--record ID] [--model FOLDER]
         [--detail-gate 0 0.1 0.3] [--sampling-steps 1 2] [--noise-scale 1 0] [--static-snap 0 0.2]
         [--horizons 8 16 32 64 128]
 
 Reads the train_worldsim record (default: the newest), its checkpoint (or `--model`, a checkpoint
-folder trained on from it elsewhere, e.g. by `from_pack`) and the held-out episodes of that
+folder trained on from it elsewhere, e.g. from a latent pack on a GPU host) and the held-out episodes of that
 checkpoint, and prints PSNR / SSIM beside copy-the-last-frame for every
 combination of detail gate, sampling steps, sampler temperature and static snap: the sweep
 behind the defaults `detail_gate`, `noise_scale` and `static_snap`.

@@ -5,9 +5,9 @@ Several evaluations per side pool their episodes, so a benchmark evaluated in ra
 An evaluation is named by its manifest record id or by its output folder (`results.json` and
 `episodes.json`, as `evaluate` writes them and as kept under `results/` in the repository).
 
-    python -m stages.evaluate.paired outputs/libero_goal-small \\
+    python -m analysis.paired outputs/libero_goal-small \\
         --a evaluate-05f27e1f2f64 evaluate-b3f4f4885ad3 --b evaluate-e20e05a3d33f [--json paired.json]
-    python -m stages.evaluate.paired - --a results/libero_goal/evaluate-* --b <work>/evaluate/...
+    python -m analysis.paired - --a results/libero_goal/evaluate-* --b <work>/evaluate/...
 """
 
 from __future__ import annotations
