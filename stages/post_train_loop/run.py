@@ -27,11 +27,10 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig
 
-from stages.post_train_loop.environment import Rollouts, check_pack, collector, pack_contexts, rollouts
 from stages.post_train_loop.evaluation import (PairedCheck, imagined_success, real_success, record_imagined,
                                                validation_success, with_gap)
 from stages.post_train_loop.sweep import sweep_dir, write_summary
-from stages.post_train_loop.training import rl_phase
+from stages.post_train_loop.training import Rollouts, check_pack, collector, pack_contexts, rl_phase, rollouts
 from worldenv_core.envs.tasks import contract_task_ids
 from worldenv_core.distributed import is_main, launched
 from worldenv_core.files import write_text_atomic
@@ -136,9 +135,11 @@ def run(cfg: DictConfig) -> dict:
     with StageRun(manifest, "post_train_loop", tags, config) as stage:
         policy_path = resolve_policy(cfg, stage, contract)
         pack = read_context_pack(cfg.contexts_from) if packed else None
+        pack_file = None
         if pack is not None:  # by content: another pack is another training, the same one a resume
             check_pack(cfg, contract, pack, f"context pack {cfg.contexts_from}")
-            stage.record.input_files.append(manifest.artefact(cfg.contexts_from, kind="context_pack"))
+            pack_file = manifest.artefact(cfg.contexts_from, kind="context_pack")
+            stage.record.input_files.append(pack_file)
         encoder = pack.encoder if packed else _instruction_encoder()
         encode = lambda s: encoder(s).to(device)  # noqa: E731
         policy, pmeta = load_checkpoint(policy_path, "policy", contract, device=str(device))
@@ -156,7 +157,7 @@ def run(cfg: DictConfig) -> dict:
         if cfg.contexts_to:
             return pack_contexts(cfg, stage, contract, src, encoder)
         stage.metrics["contexts"] = "fresh placements" if src.n_contexts is None else src.n_contexts
-        key = work_key(config, stage.record.input_files[-1].sha256 if packed else None)
+        key = work_key(config, pack_file and pack_file.sha256)
         work = work_dir(cfg.experiment_dir, "post_train_loop", key, stage.work_inputs())
         stage.lock(work)  # one run at a time trains into a work dir
         if is_main():  # the resolved config, what analysis reads; in a torchrun launch rank 0 alone writes
@@ -258,13 +259,13 @@ def run_metrics(cfg: DictConfig, contract, trainer, device) -> dict:
     """The record's metrics: the curves by iteration and every real episode, by use."""
     rl, history = cfg.rl, trainer.history
     by_step = lambda key: {str(h["step"]): h[key] for h in history if key in h}  # noqa: E731
+    real_evaluations = len(by_step("real_success"))  # none from a context pack: no task registry needed there
     return {"iterations": trainer.step, "train_wall_s": round(trainer.wall_s, 1), "device": str(device),
             "final_mean_reward": history[-1].get("mean_reward"), "real_success": by_step("real_success"),
             "imagined_reward": by_step("imagined_reward"), "validation_success": by_step("validation_success"),
             "imagined_success": by_step("imagined_success"),
             # evaluation: monitoring only, never a training signal
-            "real_episodes": (len(by_step("real_success")) and len(by_step("real_success")) * cfg.eval.init_states
-                              * len(contract_task_ids(contract)))
+            "real_episodes": (real_evaluations and real_evaluations * cfg.eval.init_states * len(contract_task_ids(contract)))
             + sum(h.get("paired_episodes", 0) for h in history) + sum(h.get("validation_episodes", 0) for h in history),
             "paired_hack_rate": by_step("paired_hack_rate"), "paired_imagined_mixed": by_step("paired_imagined_mixed"),
             "paired_real_mixed": by_step("paired_real_mixed"),

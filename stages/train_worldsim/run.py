@@ -56,7 +56,8 @@ def validate(cfg: DictConfig) -> None:
     positive_int(cfg, "rollout.chunks", allow_zero=True)  # 0: teacher-forced, e.g. a fresh flow network first
     positive_int(cfg, "rollout.batch_size")
     trainer_options(cfg, *BATCHES)
-    if given := [k for k in ON_A_MODEL if cfg.get(k) is not None] * (not cfg.init_from):
+    given = [k for k in ON_A_MODEL if cfg.get(k) is not None]
+    if given and not cfg.init_from:
         raise ConfigError(f"{given[0]} goes on from a trained model (its autoencoder): give init_from=<record or folder>")
     if cfg.snapshots > 1 and not cfg.init_from:
         raise ConfigError("snapshots keeps the model at fractions of the open-loop phase: give init_from=<record or folder>")
@@ -100,9 +101,11 @@ def run(cfg: DictConfig) -> dict:
         base_model, base_meta = load_checkpoint(base, "worldsim", contract) if base else (None, None)
         paths = [] if packed else collected_episodes(manifest, stage, contract.name, cfg.scale.name, cfg.expert_only)
         pack = read_latent_pack(cfg.latents_from, base).every(cfg.latents_every) if packed else None
+        pack_file = None
         if packed:  # by content: another pack is another training, the same one a resume
             contract.check(pack.task, f"latent pack {cfg.latents_from}")
-            stage.record.input_files.append(manifest.artefact(cfg.latents_from, kind="latent_pack"))
+            pack_file = manifest.artefact(cfg.latents_from, kind="latent_pack")
+            stage.record.input_files.append(pack_file)
         if (done := stage.finished_before()) is not None:
             return done.metrics
         if packed:
@@ -114,7 +117,7 @@ def run(cfg: DictConfig) -> dict:
         if cfg.latents_to:
             return pack_latents(stage, cfg, base_model, base, base_meta, episodes, [episode_key(p) for p in train], contract)
         # named by the split too, so that a work dir and the split its weights were trained on cannot disagree
-        key = {**config, "held_out": held, **({"latents_from": stage.record.input_files[-1].sha256} if packed else {})}
+        key = {**config, "held_out": held, **({"latents_from": pack_file.sha256} if packed else {})}
         work = work_dir(cfg.experiment_dir, "train_worldsim", key, stage.work_inputs())
         stage.lock(work)  # one run at a time trains into a work dir
         if base:  # its camera models and kinematics are part of what it learned
@@ -209,5 +212,5 @@ def _time_rollout(model, ema, chunks_of, cameras, cfg, device, seconds: float) -
     """How many open-loop steps fit in `seconds`, timed on copies of the model and its EMA."""
     probe_model, probe_ema = copy.deepcopy(model), copy.deepcopy(ema)
     probe_opt = torch.optim.AdamW(probe_model.velocity.parameters(), lr=cfg.flow.lr)
-    probe = rollout_phase(probe_model, probe_ema, probe_opt, lambda ahead: chunks_of(ahead), cameras, cfg, device)
+    probe = rollout_phase(probe_model, probe_ema, probe_opt, chunks_of, cameras, cfg, device)
     return planned_steps(probe.step, iter(probe.batches(0)), seconds)

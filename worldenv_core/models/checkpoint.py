@@ -29,12 +29,19 @@ class CheckpointError(ValueError):
     """A checkpoint that is missing, incomplete, or made for another task contract."""
 
 
-def save_model(path: str | Path, model: torch.nn.Module, model_config: dict, meta: dict | None = None) -> Path:
-    return save_state(path, model.state_dict(), model_config, meta)
+def save_model(path: str | Path, model: torch.nn.Module, model_config: dict, meta: dict | None = None,
+               native: bool = False) -> Path:
+    """`native`: a LeRobot policy (`save_lerobot`) also in LeRobot's own layout inside the folder
+    (`lerobot/`), for its loaders (a released or final policy; not every resumable checkpoint)."""
+    also = model.save_lerobot if native and hasattr(model, "save_lerobot") else None
+    return save_state(path, model.state_dict(), model_config, meta,
+                      also=None if also is None else (lambda tmp: also(tmp / "lerobot")))
 
 
-def save_state(path: str | Path, state: dict[str, torch.Tensor], model_config: dict, meta: dict | None = None) -> Path:
-    """A checkpoint folder from a state dict (`save_model` without the module: weights edited as tensors)."""
+def save_state(path: str | Path, state: dict[str, torch.Tensor], model_config: dict, meta: dict | None = None,
+               also=None) -> Path:
+    """A checkpoint folder from a state dict (`save_model` without the module: weights edited as tensors).
+    `also(folder)` writes more files into it before it is renamed into place."""
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
@@ -44,6 +51,8 @@ def save_state(path: str | Path, state: dict[str, torch.Tensor], model_config: d
         save_file(state, str(tmp / WEIGHTS))
         os.chmod(tmp / WEIGHTS, 0o666 & ~current_umask())  # safetensors writes 0600; checkpoints are shared like any output
         (tmp / CONFIG).write_text(json.dumps({"format": FORMAT, "model": model_config, "meta": meta or {}}, indent=2))
+        if also is not None:
+            also(tmp)
         if path.exists():
             shutil.rmtree(path)
         tmp.rename(path)

@@ -243,11 +243,8 @@ class Trainer:
     def save_final(self, path: str | Path, model: torch.nn.Module | None = None, **meta) -> Path:
         """The trained model (or another one, e.g. its EMA) as a self-describing checkpoint folder; a
         LeRobot policy (`save_lerobot`) also in LeRobot's own layout inside it (`lerobot/`), for its loaders."""
-        model = (model or self.model).cpu()
-        folder = save_model(path, model, self.model_config, {**self.meta, "step": self.step, **meta})
-        if hasattr(model, "save_lerobot"):
-            model.save_lerobot(Path(folder) / "lerobot")
-        return folder
+        return save_model(path, (model or self.model).cpu(), self.model_config, {**self.meta, "step": self.step, **meta},
+                          native=True)
 
     def finish(self, stage, final: Path, title: str, plot: str = "losses.png") -> Path:
         """Close the tracker, draw the curves and record the final checkpoint and the plot as the
