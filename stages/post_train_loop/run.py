@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 import time
 from pathlib import Path
 
@@ -178,6 +179,7 @@ def run(cfg: DictConfig) -> dict:
         evaluate = evaluator(cfg, contract, src, policy, policy_path, encode, trainer, work, packed, provenance)
         trainer.fit([rl_phase(policy, optimizer, collect, src.n_contexts, rl, cfg.seed)], evaluate=evaluate,
                     evaluate_every=cfg.eval.every, deadline=deadline)
+        shutil.rmtree(work / "rollout_journal", ignore_errors=True)  # every iteration it kept is checkpointed now
         final = trainer.save_final(work / "policy", iteration=trainer.step)
         if trainer.stopped_early:
             stage.not_recorded = f"the deadline (minutes={cfg.minutes}) came at iteration {trainer.step}; the same command goes on"

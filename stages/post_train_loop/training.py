@@ -90,7 +90,9 @@ def real_collector(contract, starts: list[RealStart] | Callable[[int], tuple[Rea
     """Rollouts in the real simulator (`env=real`, the reference): the behaviour policy is saved
     under `folder` for the worker processes, one folder per iteration (a worker that ran the
     previous iteration must not reuse its cached weights), the previous one removed. `starts`:
-    the contexts' list, or (fresh placements) a function of the context number."""
+    the contexts' list, or (fresh placements) a function of the context number. Every finished
+    rollout is kept in `folder/rollout_journal` until the next iteration's start, so an interrupted
+    iteration resumes with the real episodes it had run."""
     count = itertools.count()
     lookup = starts if callable(starts) else (lambda i: (starts[i], instructions[i]))
 
@@ -101,7 +103,7 @@ def real_collector(contract, starts: list[RealStart] | Callable[[int], tuple[Rea
         chosen = [lookup(i) for i in picks]
         return collect_real_rollouts(behaviour, path, contract, [st for st, _ in chosen], [i for _, i in chosen],
                                      n_rollouts, encode, horizon, gens, workers=workers, progress=progress,
-                                     noise_scale=noise_scale)
+                                     noise_scale=noise_scale, journal=folder / "rollout_journal")
     return collect
 
 

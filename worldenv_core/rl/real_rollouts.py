@@ -12,13 +12,19 @@ Each rollout is one real episode and one worker job (`real_rollout`): the behavi
 saved once per iteration and loaded by the workers; they return what PPO needs (the observation
 each chunk was chosen from and the sampled chunk, in the policy's normalised space), and the
 behaviour log-probabilities are computed here in one batch, so PPO's first ratio is exactly 1.
+With a `journal` folder every finished rollout is also kept on disk as it arrives (`RolloutJournal`),
+so an iteration cut short (a session's end, a crash) resumes with the real episodes it had: they are
+the resource this route spends, and an iteration of 256 of them is most of an hour on 2 cores.
 """
 
 from __future__ import annotations
 
 import functools
 import math
+import pickle
+import shutil
 import time
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,6 +35,8 @@ from worldenv_core.distributed import random_rows
 
 from worldenv_core.contract import TaskContract
 from worldenv_core.envs.replay import RealStart
+from worldenv_core.files import write_bytes_atomic
+from worldenv_core.manifest import sha256_file
 from worldenv_core.rl.loop import RolloutBatch, rloo_advantages
 
 
@@ -103,15 +111,51 @@ def real_rollout(job: RealRolloutJob) -> dict:
             "executed": executed, "first_success": first_success, "error": error, "seconds": clock}
 
 
+class RolloutJournal:
+    """The finished rollouts of one behaviour policy, one file each (written whole, then renamed), in
+    `folder/<weights digest>/`. A rollout is taken back only for the same job: the same policy
+    weights, place in the batch, seed, start, horizon and noise (a resumed iteration draws them all
+    again from its seed, so they match exactly; anything else is run afresh). Opening a journal
+    removes those of other policies: the iterations before this one are finished."""
+
+    def __init__(self, folder: str | Path, behaviour_path: str | Path):
+        folder = Path(folder)
+        digest = sha256_file(Path(behaviour_path) / "model.safetensors")[:16]
+        for old in folder.glob("*"):
+            if old.name != digest:
+                shutil.rmtree(old, ignore_errors=True)
+        self.folder = folder / digest
+        self.folder.mkdir(parents=True, exist_ok=True)
+
+    @staticmethod
+    def _job_key(job: RealRolloutJob) -> tuple:
+        return job.index, job.seed, job.start.key, job.horizon, job.noise_scale
+
+    def _path(self, job: RealRolloutJob) -> Path:
+        return self.folder / f"{job.index:05d}.rollout"
+
+    def get(self, job: RealRolloutJob) -> dict | None:
+        """The job's rollout, if this journal holds it (and it is whole)."""
+        try:
+            key, result = pickle.loads(zlib.decompress(self._path(job).read_bytes()))
+        except (OSError, zlib.error, pickle.UnpicklingError, EOFError, ValueError):
+            return None
+        return result if key == self._job_key(job) else None
+
+    def add(self, job: RealRolloutJob, result: dict) -> None:
+        write_bytes_atomic(self._path(job), zlib.compress(pickle.dumps((self._job_key(job), result)), 1))
+
+
 def collect_real_rollouts(behaviour, behaviour_path: str | Path, contract: TaskContract, starts: list[RealStart],
                           instructions: list[str], n_rollouts: int, encoder, horizon: int,
                           generator: torch.Generator | list[torch.Generator], workers: int | None = None, launcher: str = "local",
                           ray_address: str | None = None, progress: bool = False,
-                          noise_scale: float = 1.0) -> RolloutBatch:
+                          noise_scale: float = 1.0, journal: str | Path | None = None) -> RolloutBatch:
     """N real rollouts per context (context-major, as `collect_rollouts` draws them) by the
     behaviour policy saved at `behaviour_path` (whose weights are `behaviour`'s), as a
     `RolloutBatch`: reward 1 for a success, 0 otherwise; `by_reflector` marks the successes.
-    `generator`: one, or one per context (`distributed.random_rows`)."""
+    `generator`: one, or one per context (`distributed.random_rows`). `journal`: a folder keeping
+    every finished rollout (`RolloutJournal`); the ones it holds already are not run again."""
     from worldenv_core.models.laplace import laplace_log_prob
     from worldenv_core.parallel import run_jobs
 
@@ -124,8 +168,17 @@ def collect_real_rollouts(behaviour, behaviour_path: str | Path, contract: TaskC
     lang = encoder([instructions[i // n_rollouts] for i in range(len(seeds))]).float().cpu()
     jobs = [RealRolloutJob(contract, starts[i // n_rollouts], str(behaviour_path), s, lang[i].numpy(), horizon, noise_scale,
                            index=i) for i, s in enumerate(seeds)]
-    runs = sorted(run_jobs(real_rollout, jobs, workers=workers, launcher=launcher, desc="real rollouts",
-                           ray_address=ray_address, progress=progress, unit="rollout"), key=lambda r: r["index"])
+    book = RolloutJournal(journal, behaviour_path) if journal is not None else None
+    runs = [r for r in (book.get(j) for j in jobs) if r is not None] if book else []
+    kept = {r["index"] for r in runs}
+    todo = [j for j in jobs if j.index not in kept]
+    desc = f"real rollouts ({len(kept)} kept from before)" if kept else "real rollouts"
+    for r in run_jobs(real_rollout, todo, workers=workers, launcher=launcher, desc=desc, ray_address=ray_address,
+                      progress=progress, unit="rollout"):
+        if book:
+            book.add(jobs[r["index"]], r)
+        runs.append(r)
+    runs.sort(key=lambda r: r["index"])
     n_chunks = max(1, max(len(r["actions"]) for r in runs))
     rows, size = len(runs), contract.image_size
     frames = torch.zeros(rows, n_chunks, 3, size, size, dtype=torch.uint8)

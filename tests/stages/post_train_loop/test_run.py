@@ -178,6 +178,7 @@ def test_the_real_simulator_reference_trains_on_real_rollouts_rewarded_by_the_or
                          .joinpath("training.json").read_text())
     assert all("approx_kl" not in h for h in history if "mean_reward" in h)
     assert len(list(work.glob("behaviour_*"))) == 1  # the behaviour policy the workers loaded, the latest only
+    assert not (work / "rollout_journal").exists()  # kept while an iteration could be cut short, then removed
     with pytest.raises(ConfigError, match="env must be one of"):
         post_train_loop(cfg("post_train_loop", exp, *LOOP, "env=simulated"))
 

@@ -67,3 +67,44 @@ def test_real_rollouts_are_rewarded_by_the_oracle_on_the_actions_they_hold(demo,
     # the behaviour log-probabilities are the policy's own: PPO's first ratio is exactly 1
     stats = ppo_update(policy, torch.optim.SGD(policy.parameters(), lr=0.0), batch, 1, 0.1, 4)
     assert stats["ratio_mean"] == pytest.approx(1.0, abs=1e-5) and stats["approx_kl"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_an_interrupted_collection_resumes_with_the_rollouts_it_had_finished(demo, contract, tmp_path, monkeypatch):
+    from worldenv_core.rl import real_rollouts
+
+    path, ep = demo
+    c = contract(chunk=4, image_size=32)
+    policy = tiny_policy()
+    saved = save_model(tmp_path / "behaviour", policy, POLICY_CONFIG, {"kind": "policy"})
+    starts = [RealStart(task_id=ep.meta.task_id, episode=str(path), frame=f) for f in (0, 3)]
+    journal = tmp_path / "journal"
+    (journal / "0123456789abcdef").mkdir(parents=True)  # an older iteration's journal: finished, removed
+    real, ran = real_rollouts.real_rollout, []
+
+    def counted(job, stop_after=None):
+        if stop_after is not None and len(ran) == stop_after:
+            raise KeyboardInterrupt  # the session ends in the middle of the iteration
+        ran.append(job.index)
+        return real(job)
+
+    def collect(seed=0):
+        return collect_real_rollouts(policy, saved, c, starts, [ep.meta.instruction] * 2, 2, encoder, horizon=8,
+                                     generator=torch.Generator().manual_seed(seed), workers=1, journal=journal)
+
+    monkeypatch.setattr(real_rollouts, "real_rollout", lambda job: counted(job, stop_after=3))
+    with pytest.raises(KeyboardInterrupt):
+        collect()
+    assert ran == [0, 1, 2] and not (journal / "0123456789abcdef").exists()
+    (book,) = journal.iterdir()
+    (book / "00001.rollout").write_bytes(b"torn")  # a file cut short is run again, not trusted
+    monkeypatch.setattr(real_rollouts, "real_rollout", counted)
+    ran.clear()
+    resumed = collect()
+    assert ran == [1, 3]  # only what was missing or torn
+    fresh = collect_real_rollouts(policy, saved, c, starts, [ep.meta.instruction] * 2, 2, encoder, horizon=8,
+                                  generator=torch.Generator().manual_seed(0), workers=1)
+    for name in ("frames", "actions", "mask", "rewards", "logp_old"):
+        assert torch.equal(getattr(resumed, name), getattr(fresh, name)), name
+    ran.clear()
+    collect(seed=1)  # other seeds: other rollouts, none taken from the journal
+    assert sorted(ran) == [0, 1, 2, 3]
