@@ -309,6 +309,19 @@ def test_rollouts_drawn_at_a_sampling_temperature_carry_its_log_probs_and_ppo_st
     assert out["approx_kl"] == pytest.approx(0.0, abs=1e-6) and out["ratio_mean"] == pytest.approx(1.0, abs=1e-5)
 
 
+def test_ppo_runs_the_policy_as_the_behaviour_ran_so_dropout_cannot_break_the_ratio():
+    """A policy with dropout (LeRobot's ACT has 0.1) is trained in eval mode: an unchanged policy's
+    ratio is exactly 1, where a dropout mask on mu would put it near 0."""
+    from worldenv_core.rl.loop import collect_rollouts, policy_param_groups, ppo_update
+
+    policy, contexts, encoder = _policy_and_contexts()
+    policy.register_forward_hook(lambda m, args, out: (torch.nn.functional.dropout(out[0], 0.5, m.training), out[1]))
+    batch = collect_rollouts(policy, ActionRewardEnv(), contexts, 8, encoder, torch.Generator().manual_seed(0))
+    out = ppo_update(policy, torch.optim.SGD(policy.parameters(), lr=0.0), batch, epochs=1,
+                     epsilon=0.2, minibatch=16, generator=torch.Generator().manual_seed(0))
+    assert out["ratio_mean"] == pytest.approx(1.0, abs=1e-5) and not policy.training
+
+
 def test_the_gradients_signal_and_noise_are_recovered_from_its_groups():
     """Groups' gradients s + noise: the estimate recovers |s|^2 and sigma^2, and the number of
     groups at which the batch's direction is the reward's to cos 0.9; pure noise has no signal."""
