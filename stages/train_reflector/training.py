@@ -38,7 +38,7 @@ def fit(cfg, contract: TaskContract, episodes: list, work: Path, device, encoder
         raise ConfigError(f"{e}; collect more episodes (policy rollouts give failures)") from None
     model_cfg = OmegaConf.to_container(cfg.reflector, resolve=True)
     model = instantiate(model_cfg, _convert_="all")
-    if hasattr(model.frame_encoder, "load_autoencoder"):
+    if hasattr(getattr(model, "frame_encoder", None), "load_autoencoder"):  # a reward model may have no frame encoder
         model.frame_encoder.load_autoencoder(worldsim)
     model = model.to(device)
     meta = {"kind": "reflector", **contract.meta(), "camera": cfg.camera, "frame_stride": cfg.frame_stride,

@@ -124,3 +124,24 @@ def test_evaluate_all_equals_three_separate_runs(with_policy):
         (b,) = json.loads((Path(together[mode]["report_dir"]) / "episodes.json").read_text())
         assert {k: a[k] for k in keys} == {k: b[k] for k in keys}, mode
     assert together["fixed"]["per_task"][0]["mean_steps"] == 280
+
+
+def test_lerobots_reward_classifier_trains_as_the_reflector_and_stops_an_evaluation(with_policy, contract):
+    """`reflector=lerobot_classifier`: LeRobot's classifier trained by the same stage on the same labels,
+    evaluated by the same report, and judging an evaluation's episodes through the same interface."""
+    exp = with_policy
+    tiny = ["reflector=lerobot_classifier", "reflector.encoder.embedding_size=8",
+            "reflector.encoder.hidden_sizes=[8,16,16,16]", "reflector.hidden_dim=16", "reflector.latent_dim=16",
+            "reflector.pooling_dim=2"]
+    metrics = train_reflector(cfg("train_reflector", exp, *[s for s in SMALL if not s.startswith("reflector.")], *tiny,
+                                  "expert_only=true"))
+    rec = Manifest(exp).latest("train_reflector", task="tiny")
+    assert rec.tags["reward"] == "LeRobot reward classifier" and metrics["steps"] == 6
+    folder = next(p for p in Manifest(exp).resolve(rec) if p.name == "model.safetensors").parent
+    model, _ = load_checkpoint(folder, "reflector", contract())
+    assert type(model).__name__ == "LeRobotRewardClassifier"
+    assert (folder.parent / "reflector_eval.json").exists() and metrics["held_out"] == 1
+    out = evaluate(cfg("evaluate", exp, "termination=reflector", "eta=0.0", "init_states=1", "workers=1",
+                       "progress=false", f"reflector_from={folder}", "videos_per_task=0"))
+    (ep,) = json.loads((Path(out["report_dir"]) / "episodes.json").read_text())
+    assert ep["stop_step"] == ep["steps"] == 0  # eta = 0: its first verdict (> 0) stops the episode
