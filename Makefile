@@ -12,7 +12,7 @@ export MUJOCO_GL ?= egl
 export HF_HUB_OFFLINE := 1
 export TOKENIZERS_PARALLELISM := false
 
-.PHONY: setup test test-fast faults smoke pipeline rl-real suites suites-table eval-release research-checkpoints fidelity bench cost-model expert-table tensorboard clean
+.PHONY: setup test test-fast faults smoke pipeline rl-real suites suites-table suites-pro eval-release research-checkpoints fidelity bench cost-model expert-table tensorboard clean
 
 setup: $(STAMP)
 
@@ -102,6 +102,23 @@ eval-release: setup
 	    $(PY) -m stages.evaluate +task=$(SUITE) experiment_dir=outputs/release-$(SUITE) \
 	      policy_from=checkpoints/$(SUITE)/$$folder policy_label=$$policy $$term init_states=$(RELEASE_INIT) || exit 1; \
 	  else echo "checkpoints/$(SUITE)/$$folder: not released"; fi; done
+
+# The perturbed-suite table for the released policies: each released sft / post_trained of each suite on the
+# perturbed suites the benchmark registers for it (LIBERO-PRO: <suite>_swap, _lan, _object, _task), oracle
+# termination, the source suite's step limit, the first PRO_INIT init states per task (evaluations resume and
+# reuse finished jobs); then outputs/suites-pro/suites_pro.md beside each suite's own evaluation (make eval-release).
+# make suites-pro PRO_SUITES=libero_spatial PRO_INIT=10
+PRO_SUITES ?= $(SUITES)
+PRO_PERTURBATIONS ?= swap lan object task
+PRO_INIT ?= 50
+suites-pro: setup
+	@for suite in $(PRO_SUITES); do for p in $(PRO_PERTURBATIONS); do for policy in sft post_trained; do \
+	  if [ -d checkpoints/$$suite/$$policy ]; then \
+	    echo "evaluating checkpoints/$$suite/$$policy on $${suite}_$$p"; \
+	    $(PY) -m stages.evaluate +task=$$suite experiment_dir=outputs/release-$$suite policy_from=checkpoints/$$suite/$$policy \
+	      policy_label=$$policy eval_suite=$${suite}_$$p termination=oracle init_states=$(PRO_INIT) || exit 1; \
+	  else echo "checkpoints/$$suite/$$policy: not released"; fi; done; done; done
+	$(PY) -m stages.suites --perturbed outputs/suites-pro $(foreach t,$(PRO_SUITES),$(t)=outputs/release-$(t))
 
 # The research variants (checkpoints/README.md, "Research variants"): out of the tree, each kept for one
 # figure; extracted here at their paths from the commit that last held them (needs the full history).
