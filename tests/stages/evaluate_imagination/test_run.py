@@ -74,6 +74,33 @@ def test_a_reflector_named_later_judges_the_stored_pairs_without_a_rollout(paire
         evaluate_imagination(stage_cfg("evaluate_imagination", exp, *PAIRED, f"more_reflectors=[{rid}]", "store_frames=false"))
 
 
+def test_lerobots_reward_classifier_judges_the_same_stored_pairs(paired, tmp_path):
+    """A LeRobot reward classifier (a checkpoint folder) named as a further judge scores the stored
+    frames of the pairs beside the reflector, each side's verdict its own score of that frame."""
+    import torch
+
+    from hydra.utils import instantiate
+    from tests.worldenv_core.models.test_lerobot_reward import CONFIG
+    from worldenv_core.models.checkpoint import read_config, save_model
+
+    exp, summary = paired
+    rec = Manifest(exp).latest("evaluate_imagination", task="tiny")
+    torch.manual_seed(0)
+    judge = instantiate(CONFIG).eval()
+    reflector = Path(exp, Manifest(exp).latest("train_reflector", task="tiny").files("checkpoint")[0].path).parent
+    held_out = read_config(reflector)["meta"]["held_out"]  # trained on what the reflector was: no context seen
+    meta = {"kind": "reflector", **rec.config["task"], "camera": "agentview", "eta": 0.5, "held_out": held_out}
+    folder = save_model(tmp_path / "lerobot_classifier", judge, CONFIG, meta)
+    judged_run = evaluate_imagination(stage_cfg("evaluate_imagination", exp, *PAIRED, f"more_reflectors=[{folder}]"))
+    assert json.dumps(judged_run["headline"]) == json.dumps(summary["headline"])  # the same pairs, not run again
+    rec = Manifest(exp).latest("evaluate_imagination", task="tiny")
+    pairs = json.loads(next(Path(exp, a.path) for a in rec.files("report") if a.path.endswith("pairs.json")).read_text())
+    for r in pairs["sft@1"]["rows"]:
+        (more,) = [v for k, v in r["more_reflectors"].items() if "lerobot_classifier" in k]
+        assert len(more["imagined_scores"]) == len(r["imagined_scores"]) and all(0 <= x <= 1 for x in more["real_scores"])
+    assert any("lerobot_classifier" in name for name in judged_run["judges"])
+
+
 def test_the_report_shows_the_verdict_table_and_the_real_episode_accounting(paired):
     exp, _ = paired
     report = (Path(exp) / "report" / "report.md").read_text()
