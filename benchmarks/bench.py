@@ -8,6 +8,9 @@ env-steps per second of the world simulator at batch 8 against real env-steps pe
 The world model's cost does not depend on its weights, so an untrained model of the configured
 architecture is timed unless `--worldsim <checkpoint>` names a trained one. Both sides get the
 same CPU threads (`--threads`, default 1: torch threads, and the software renderer's threads).
+`--only policy`: one chunk's forward (batch 1, as a rollout asks) of each policy config named by
+`--policies` (default: the project's `small` and LeRobot's ACT, `lerobot_act`) at the task's image size,
+untrained (the cost does not depend on the weights), with their parameter counts.
 """
 
 from __future__ import annotations
@@ -123,6 +126,28 @@ def world_model_speed(suite: str, task_id: int, image_size: int, camera: str, re
     return out
 
 
+def policy_costs(policies: list[str], suite: str, image_size: int, repeats: int) -> dict:
+    """Milliseconds per chunk (median) and parameters of each policy config, inputs as a rollout gives them."""
+    import torch
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    from worldenv_core.stage import compose_config
+
+    out = {}
+    for name in policies:
+        cfg = compose_config("train_policy", [f"+task={suite}", f"policy={name}", f"task.image_size={image_size}"])
+        model = instantiate(OmegaConf.to_container(cfg.policy, resolve=True), _convert_="all").eval()
+        images = {c: torch.randint(0, 256, (1, 3, image_size, image_size), dtype=torch.uint8) for c in model.cameras}
+        proprio, lang = torch.zeros(1, 7), torch.zeros(1, 384)
+        with torch.no_grad():
+            model(images, proprio, lang)  # warm-up: first-call allocations
+            ms = _median_ms(lambda: model(images, proprio, lang), repeats)
+        out[name] = {"ms_per_chunk": round(ms, 1), "chunk": int(cfg.task.chunk),
+                     "parameters_m": round(sum(p.numel() for p in model.parameters()) / 1e6, 2)}
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--suite", default="libero_object")
@@ -132,7 +157,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--batch", type=int, default=8, help="imagined rollouts per world-model call")
     parser.add_argument("--worldsim", default=None, help="a train_worldsim checkpoint (default: untrained, same cost)")
-    parser.add_argument("--only", choices=["simulator", "worldsim"], default=None)
+    parser.add_argument("--only", choices=["simulator", "worldsim", "policy"], default=None)
+    parser.add_argument("--policies", nargs="+", default=["small", "lerobot_act"], help="policy configs (conf/policy)")
     parser.add_argument("--threads", type=int, default=1,
                         help="CPU threads for each side: the world model's torch threads and the simulator's "
                              "software renderer (Mesa llvmpipe, LP_NUM_THREADS); the same on both for a fair ratio")
@@ -144,9 +170,11 @@ def main() -> None:
     os.environ["LP_NUM_THREADS"] = str(args.threads)
     torch.set_num_threads(args.threads)
     result = {}
-    if args.only != "worldsim":
+    if args.only in (None, "policy"):
+        result["policy"] = policy_costs(args.policies, args.suite, args.image_size, max(args.repeats, 10))
+    if args.only not in ("worldsim", "policy"):
         result["simulator"] = simulator_costs(args.suite, args.task_id, args.image_size, args.cameras, args.repeats)
-    if args.only != "simulator":
+    if args.only not in ("simulator", "policy"):
         result["world_model"] = world_model_speed(args.suite, args.task_id, args.image_size, args.cameras[0],
                                                   args.repeats, args.batch, args.worldsim)
     print(json.dumps(result, indent=2))
