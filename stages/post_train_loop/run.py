@@ -31,7 +31,8 @@ from omegaconf import DictConfig
 from stages.post_train_loop.evaluation import (PairedCheck, imagined_success, real_success, record_imagined,
                                                validation_success, with_gap)
 from stages.post_train_loop.sweep import sweep_dir, write_summary
-from stages.post_train_loop.training import Rollouts, check_pack, collector, pack_contexts, rl_phase, rollouts
+from stages.post_train_loop.training import (Rollouts, check_pack, collector, pack_contexts, paired_guard, rl_phase,
+                                             rollouts)
 from worldenv_core.envs.tasks import contract_task_ids
 from worldenv_core.distributed import is_main, launched
 from worldenv_core.files import write_text_atomic
@@ -56,7 +57,8 @@ CONTEXTS = ("episodes", "placements")  # rl.contexts: collected episodes' starts
 # rl settings added after runs were made: at these values a run keeps the work dir it had before them
 RL_DEFAULTS = {"mid_episode_frames": 0, "verdicts": "own", "contexts": "episodes", "group_success": None,
                "max_kl": None, "kl_states": 512, "optimizer": "adam", "reset_optimizer": False, "train_scale_head": True,
-               "direction_check": False, "noise_scale": 1.0}
+               "direction_check": False, "noise_scale": 1.0, "guard_contexts": 0, "guard_rollouts": 4,
+               "guard_max_hack_rate": 0.5}
 # top-level settings added later, kept out of the settings hash and work dir at these values
 LATER_DEFAULTS = {"contexts_to": None, "contexts_from": None, "minutes": None}
 
@@ -121,6 +123,21 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError("contexts_to writes a pack here, contexts_from trains from one there: give one of them")
     if cfg.minutes is not None and not cfg.minutes > 0:
         raise ConfigError(f"minutes must be > 0 or null (rl.iterations as given), got {cfg.minutes}")
+    validate_guard(cfg)
+
+
+def validate_guard(cfg: DictConfig) -> None:
+    """`rl.guard_contexts`: the guard replays imagined rollouts where their contexts start for real."""
+    positive_int(cfg, "rl.guard_contexts", allow_zero=True)
+    if not cfg.rl.guard_contexts:
+        return
+    if cfg.env == "real" or cfg.contexts_from:
+        raise ConfigError("rl.guard_contexts replays imagined rollouts from their contexts' real starts: it needs "
+                          "env=imagined and contexts from episodes (a context pack holds no real start)")
+    if not isinstance(cfg.rl.guard_rollouts, int) or cfg.rl.guard_rollouts < 1:
+        raise ConfigError(f"rl.guard_rollouts must be a positive integer, got {cfg.rl.guard_rollouts}")
+    if not 0.0 <= cfg.rl.guard_max_hack_rate <= 1.0:
+        raise ConfigError(f"rl.guard_max_hack_rate must be in [0, 1], got {cfg.rl.guard_max_hack_rate}")
 
 
 def run(cfg: DictConfig) -> dict:
@@ -177,7 +194,8 @@ def run(cfg: DictConfig) -> dict:
                  "on %s; work dir %s", policy_path, rl.iterations, cfg.env, rl.contexts_per_iteration, rl.n_rollouts,
                  "oracle" if real else f"{src.eta:.2f}", device, work)
         evaluate = evaluator(cfg, contract, src, policy, policy_path, encode, trainer, work, packed, provenance)
-        trainer.fit([rl_phase(policy, optimizer, collect, src.n_contexts, rl, cfg.seed)], evaluate=evaluate,
+        trainer.fit([rl_phase(policy, optimizer, collect, src.n_contexts, rl, cfg.seed,
+                              paired_guard(cfg, contract, src, encode))], evaluate=evaluate,
                     evaluate_every=cfg.eval.every, deadline=deadline)
         shutil.rmtree(work / "rollout_journal", ignore_errors=True)  # every iteration it kept is checkpointed now
         final = trainer.save_final(work / "policy", iteration=trainer.step)
@@ -268,7 +286,9 @@ def run_metrics(cfg: DictConfig, contract, trainer, device) -> dict:
             "imagined_success": by_step("imagined_success"),
             # evaluation: monitoring only, never a training signal
             "real_episodes": (real_evaluations and real_evaluations * cfg.eval.init_states * len(contract_task_ids(contract)))
-            + sum(h.get("paired_episodes", 0) for h in history) + sum(h.get("validation_episodes", 0) for h in history),
+            + sum(h.get("paired_episodes", 0) + h.get("guard_episodes", 0) + h.get("validation_episodes", 0)
+                  for h in history),
+            "guard_hack_rate": by_step("guard_hack_rate"), "rolled_back": sum(h.get("rolled_back", 0) for h in history),
             "paired_hack_rate": by_step("paired_hack_rate"), "paired_imagined_mixed": by_step("paired_imagined_mixed"),
             "paired_real_mixed": by_step("paired_real_mixed"),
             # the reference trains on real episodes: what the imagined route is compared at

@@ -17,6 +17,7 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig
 
+from stages.post_train_loop.evaluation import PairedCheck, imagined_success
 from worldenv_core import distributed
 from worldenv_core.envs.tasks import contract_task_ids
 from worldenv_core.contract import TaskContract
@@ -107,7 +108,25 @@ def real_collector(contract, starts: list[RealStart] | Callable[[int], tuple[Rea
     return collect
 
 
-def rl_phase(policy, optimizer, collect: Collect, n_contexts: int | None, rl, seed: int) -> Phase:
+def paired_guard(cfg: DictConfig, contract: TaskContract, src: "Rollouts", encode) -> Callable | None:
+    """`rl.guard_contexts` > 0: policy -> the guard's figures after an update: its imagined rollouts from
+    the same fixed contexts and noise every iteration, replayed for real (`guard_episodes`, counted), and
+    the share of its imagined successes that fail there (`guard_hack_rate`; NaN without one)."""
+    rl = cfg.rl
+    if not rl.guard_contexts:
+        return None
+    check = PairedCheck(contract, src.starts, rl.guard_contexts, cfg.eval.workers, False)
+
+    def guard(policy) -> dict:
+        m = imagined_success(policy, src.env, src.contexts, rl.guard_contexts, rl.guard_rollouts, encode,
+                             cfg.seed + 31, check)
+        return {"guard_hack_rate": m["paired_hack_rate"], "guard_episodes": m["paired_episodes"],
+                "guard_imagined_success": m["paired_imagined_success"], "guard_real_success": m["paired_real_success"]}
+    return guard
+
+
+def rl_phase(policy, optimizer, collect: Collect, n_contexts: int | None, rl, seed: int,
+             guard: Callable | None = None) -> Phase:
     """One iteration = one step: N rollouts from each of a few contexts by the frozen behaviour
     policy (Algorithm 1 line 3), then `ppo_epochs` passes of PPO on their RLOO advantages, over
     the groups whose verdicts disagree (`rl.filter_groups`; none: no update this iteration).
@@ -118,7 +137,9 @@ def rl_phase(policy, optimizer, collect: Collect, n_contexts: int | None, rl, se
     `n_contexts` None: contexts without end (fresh placements), each iteration a run of
     consecutive context numbers from a random 40-bit start (distinct across iterations but for
     odds of about iterations^2 x contexts / 2^41). The recipe's other settings
-    (`rl.group_success`, `rl.max_kl`, `rl.reset_optimizer`) are read here."""
+    (`rl.group_success`, `rl.max_kl`, `rl.reset_optimizer`) are read here. `guard` (`paired_guard`):
+    an update after which its hack rate exceeds `rl.guard_max_hack_rate` is undone, weights and
+    optimiser state (`rolled_back`)."""
     success_range = check_success_range(rl.get("group_success"))
 
     def step(g: torch.Generator) -> dict:
@@ -139,11 +160,22 @@ def rl_phase(policy, optimizer, collect: Collect, n_contexts: int | None, rl, se
         if rl.get("reset_optimizer"):  # each iteration's PPO from a fresh Adam (no moments from older batches)
             optimizer.state.clear()
         t_update = time.perf_counter()
+        undo = ([p.detach().clone() for p in policy.parameters()], copy.deepcopy(optimizer.state_dict())) if guard else None
         stats = (ppo_update(policy, optimizer, select(batch, keep), rl.ppo_epochs, rl.epsilon, rl.minibatch, generator=g,
                             target_kl=rl.target_kl, max_kl=rl.get("max_kl"), kl_states=rl.get("kl_states", 512),
                             direction_groups=rl.n_rollouts if rl.get("direction_check") else None)
                  if keep.any() else {})
         stats["update_seconds"] = time.perf_counter() - t_update
+        if guard is not None and stats.get("ppo_steps"):
+            stats.update(guard(policy))
+            if stats["guard_hack_rate"] > rl.guard_max_hack_rate:  # NaN (no imagined success) passes
+                with torch.no_grad():
+                    for p, old in zip(policy.parameters(), undo[0]):
+                        p.copy_(old)
+                optimizer.load_state_dict(undo[1])
+                stats["rolled_back"] = 1.0
+                log.info("update undone: the guard's hack rate %.2f is above %.2f", stats["guard_hack_rate"],
+                         rl.guard_max_hack_rate)
         stats.update({f"rollout_{k}_seconds": v for k, v in batch.timing.items()})  # summed over the rollouts
         distributed.broadcast_model(policy)  # the replicas made the same update; float noise must not make them drift
         return {"mean_reward": float(batch.rewards.mean()), "reflector_success_rate": float(batch.by_reflector.float().mean()),

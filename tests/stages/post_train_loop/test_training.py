@@ -40,3 +40,30 @@ def test_the_recipes_are_a_config_group_with_the_papers_as_default():
     assert tuned.contexts == "placements" and tuned.max_kl > 0 and list(tuned.group_success) == [0.1, 0.9]
     assert tuned.contexts_per_iteration * tuned.n_rollouts >= 4 * paper.contexts_per_iteration * paper.n_rollouts
     assert set(paper) == set(tuned)  # one schema: a recipe sets values, it adds no setting of its own
+
+
+def test_the_guard_undoes_an_update_whose_hack_rate_is_above_its_bound():
+    """An update the guard measures above `rl.guard_max_hack_rate` is undone: weights and Adam's state
+    as before it; at or below the bound, or with no imagined success to judge (NaN), it stays."""
+    from stages.post_train_loop.training import imagined_collector
+    from tests.worldenv_core.rl.test_loop import ActionRewardEnv, _policy_and_contexts
+    from worldenv_core.rl.loop import policy_param_groups
+
+    rl = OmegaConf.create({"iterations": 1, "contexts_per_iteration": 2, "n_rollouts": 8, "verdicts": "own",
+                           "filter_groups": False, "ppo_epochs": 2, "epsilon": 0.2, "minibatch": 8, "target_kl": None,
+                           "guard_max_hack_rate": 0.5})
+    for hack_rate, undone in ((1.0, True), (0.5, False), (float("nan"), False)):
+        policy, contexts, encoder = _policy_and_contexts()
+        optimizer = torch.optim.Adam(policy_param_groups(policy, 1e-3, 1e-3))
+        start = [p.detach().clone() for p in policy.parameters()]
+        measured = []
+
+        def guard(p):
+            measured.append(not all(torch.equal(a, b) for a, b in zip(p.parameters(), start)))  # after the update
+            return {"guard_hack_rate": hack_rate, "guard_episodes": 4}
+        phase = rl_phase(policy, optimizer, imagined_collector(ActionRewardEnv(), contexts, 8, encoder), 2, rl, 0, guard)
+        stats = phase.step(torch.Generator().manual_seed(0))
+        same = all(torch.equal(a, b) for a, b in zip(policy.parameters(), start))
+        assert measured == [True] and stats["ppo_steps"] > 0 and stats["guard_episodes"] == 4
+        assert same == undone and stats.get("rolled_back", 0.0) == float(undone)
+        assert (len(optimizer.state) == 0) == undone  # Adam's moments of the undone steps are gone too
