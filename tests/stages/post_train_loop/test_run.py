@@ -318,17 +318,16 @@ def test_loop_from_a_context_pack_trains_as_the_stage_does_without_episodes_or_e
     assert (tmp_path / "summary" / "sweep_summary.png").is_file()
 
 
-def test_the_paired_replay_guard_measures_every_update_and_undoes_one_that_follows_a_hack(trained):
+def test_the_paired_replay_guard_measures_the_update_and_undoes_one_that_follows_a_hack(trained):
     """rl.guard_contexts: after the update, the policy's imagined rollouts are replayed for real (counted).
     At eta 0 every imagined rollout succeeds at its first check and every real replay of 16 steps fails:
-    the hack rate is 1, so a bound of 0.5 undoes the update and 1.0 keeps it (what undoing restores:
-    test_training.py; the tiny models' verdicts all agree, so their updates are zero)."""
+    the hack rate is 1, so a bound of 0.5 undoes the update (what undoing restores, and that an update
+    within the bound stays: test_training.py; the tiny models' verdicts all agree, so their updates are zero)."""
     exp, _ = trained
-    guard = [*LOOP, "rl.iterations=1", "eval.every=0", "eta=0.0", "rl.guard_contexts=1", "rl.guard_rollouts=2"]
-    for bound in (1.0, 0.5):
-        metrics = post_train_loop(cfg("post_train_loop", exp, *guard, f"rl.guard_max_hack_rate={bound}"))
-        assert metrics["guard_hack_rate"] == {"1": 1.0} and metrics["real_episodes"] == 2  # 1 context x 2, replayed
-        assert metrics["rolled_back"] == (1 if bound == 0.5 else 0)
+    metrics = post_train_loop(cfg("post_train_loop", exp, *LOOP, "rl.iterations=1", "eval.every=0", "eta=0.0",
+                                  "rl.guard_contexts=1", "rl.guard_rollouts=2", "rl.guard_max_hack_rate=0.5"))
+    assert metrics["guard_hack_rate"] == {"1": 1.0} and metrics["real_episodes"] == 2  # 1 context x 2, replayed
+    assert metrics["rolled_back"] == 1
     with pytest.raises(ConfigError, match="guard_contexts replays imagined rollouts"):
         post_train_loop(cfg("post_train_loop", exp, *LOOP, "env=real", "rl.guard_contexts=1"))
     with pytest.raises(ConfigError, match="guard_max_hack_rate must be in"):
