@@ -89,12 +89,15 @@ def evaluate_fidelity(cfg, model, kinematics, cameras, held_eps, work: Path, bas
     fmt = lambda v, k: f"{v[k]:.3f}" if k in v else "-"  # noqa: E731 (a figure only some runs have)
     md = markdown_table(["horizon (steps)", "PSNR model", "PSNR copy-last", "SSIM model", "SSIM copy-last",
                          "PSNR / SSIM plain decoding", "PSNR / SSIM / SSIM moving: starting model",
-                         "SSIM static: model / copy", "SSIM moving: model / copy", "moving share", "n"],
+                         "SSIM static: model / copy", "SSIM moving: model / copy", "moving share",
+                         "gripper SSIM: model / copy", "gripper PSNR: model / copy", "n"],
                         [[h, f"{v['model_psnr']:.2f}", f"{v['copy_psnr']:.2f}", f"{v['model_ssim']:.3f}",
                           f"{v['copy_ssim']:.3f}", f"{fmt(v, 'plain_psnr')} / {fmt(v, 'plain_ssim')}",
                           f"{fmt(v, 'start_psnr')} / {fmt(v, 'start_ssim')} / {fmt(v, 'start_ssim_moving')}",
                           f"{v['model_ssim_static']:.3f} / {v['copy_ssim_static']:.3f}",
                           f"{v['model_ssim_moving']:.3f} / {v['copy_ssim_moving']:.3f}", f"{v['moving_fraction']:.2f}",
+                          f"{fmt(v, 'model_ssim_gripper')} / {fmt(v, 'copy_ssim_gripper')}",
+                          f"{fmt(v, 'model_psnr_gripper')} / {fmt(v, 'copy_psnr_gripper')}",
                           v["n"]] for h, v in sorted(fidelity.items())])
     md += ["", *markdown_table(["kinematics", "pos median (mm)", "pos p90 (mm)", "rot median (deg)", "gripper MAE"],
                                [[f"{v['horizon']} step(s)", f"{v['pos_mm_median']:.2f}", f"{v['pos_mm_p90']:.2f}",

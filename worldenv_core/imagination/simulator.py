@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import torch
 
-from worldenv_core.kinematics.action_map import draw_action_maps, draw_action_maps_per_rollout
+from worldenv_core.kinematics.action_map import draw_action_maps, draw_action_maps_per_rollout, gripper_mask
 from worldenv_core.kinematics.camera import PinholeCamera
 from worldenv_core.kinematics.next_state import NextStateModel, observed_carry
 from worldenv_core.models.worldsim import WorldSimulator
@@ -149,13 +149,16 @@ def open_loop_fidelity(sim: ImaginedSimulator, episodes, horizons=(8, 16, 32, 64
 
     SSIM is also split by region, to show where a model wins or loses: `moving` is where the real
     frame h steps ahead differs from the start frame (mean |difference| over colour > 0.04,
-    dilated 7x7: the arm and what it moved), `static` the rest; `moving_fraction` its share."""
+    dilated 7x7: the arm and what it moved), `static` the rest; `moving_fraction` its share; and
+    `gripper`, the pixels around the real gripper's projection h steps ahead (`gripper_mask`: where
+    the robot must stay sharp, whether or not it moved), with PSNR there too."""
     from worldenv_core.metrics import psnr, ssim_map
 
     k, longest = sim.model.chunk, max(horizons)
     n_chunks = -(-longest // k)
     keys = ("model_psnr", "model_ssim", "copy_psnr", "copy_ssim", "model_ssim_static", "copy_ssim_static",
-            "model_ssim_moving", "copy_ssim_moving", "moving_fraction")
+            "model_ssim_moving", "copy_ssim_moving", "moving_fraction", "model_ssim_gripper", "copy_ssim_gripper",
+            "model_psnr_gripper", "copy_psnr_gripper")
     rows = {h: {key: [] for key in keys} for h in horizons}
     videos = []
     for ep in episodes:
@@ -173,7 +176,14 @@ def open_loop_fidelity(sim: ImaginedSimulator, episodes, horizons=(8, 16, 32, 64
             copy = torch.stack([imgs[s] for s in starts]).float() / 255
             rows[h]["model_psnr"] += psnr(fake, real).tolist()
             rows[h]["copy_psnr"] += psnr(copy, real).tolist()
-            _ssim_by_region(rows[h], ssim_map(fake, real), ssim_map(copy, real), real, copy)
+            gripper = (gripper_mask(proprio[torch.tensor(starts) + h], sim.camera, real.shape[-1])
+                       if sim.camera is not None else None)
+            _ssim_by_region(rows[h], ssim_map(fake, real), ssim_map(copy, real), real, copy, gripper)
+            if gripper is not None:
+                for name, pred in (("model", fake), ("copy", copy)):
+                    err = ((pred - real) ** 2).mean(1)  # (N, H, W)
+                    mse = (err * gripper).flatten(1).sum(1) / gripper.flatten(1).sum(1).clamp(min=1)
+                    rows[h][f"{name}_psnr_gripper"] += (10 * torch.log10(1.0 / mse.clamp(min=1e-10))).tolist()
         s0 = starts[0]
         videos.append((imgs[s0 + 1:s0 + 1 + frames.shape[1]], frames[0, : ep.length - s0]))
     summary = {h: {key: (sum(v) / len(v) if v else float("nan")) for key, v in r.items()} | {"n": len(r["model_psnr"])}
@@ -182,17 +192,20 @@ def open_loop_fidelity(sim: ImaginedSimulator, episodes, horizons=(8, 16, 32, 64
 
 
 def _ssim_by_region(row: dict, model_map: torch.Tensor, copy_map: torch.Tensor, real: torch.Tensor,
-                    start: torch.Tensor, threshold: float = 0.04) -> None:
-    """Append whole-image and per-region SSIM of a batch (maps (N, H', W'), frames (N, 3, H, W))."""
+                    start: torch.Tensor, gripper: torch.Tensor | None = None, threshold: float = 0.04) -> None:
+    """Append whole-image and per-region SSIM of a batch (maps (N, H', W'), frames (N, 3, H, W);
+    `gripper` (N, H, W) bool: the gripper's region)."""
     change = (real - start).abs().mean(dim=1, keepdim=True)
     moving = torch.nn.functional.max_pool2d(change, 7, stride=1, padding=3)[:, 0] > threshold
     crop = (moving.shape[-1] - model_map.shape[-1]) // 2  # the SSIM map is `valid`: crop to it
     moving = moving[:, crop:moving.shape[-2] - crop, crop:moving.shape[-1] - crop]
+    grip = (gripper[:, crop:gripper.shape[-2] - crop, crop:gripper.shape[-1] - crop] if gripper is not None
+            else [None] * len(moving))
     row["model_ssim"] += model_map.flatten(1).mean(1).tolist()
     row["copy_ssim"] += copy_map.flatten(1).mean(1).tolist()
-    for mm, cm, mv in zip(model_map, copy_map, moving):
+    for mm, cm, mv, gr in zip(model_map, copy_map, moving, grip):
         row["moving_fraction"].append(mv.float().mean().item())
-        for name, region in (("static", ~mv), ("moving", mv)):
+        for name, region in (("static", ~mv), ("moving", mv), *((("gripper", gr),) if gr is not None else ())):
             if region.any():
                 row[f"model_ssim_{name}"].append(mm[region].mean().item())
                 row[f"copy_ssim_{name}"].append(cm[region].mean().item())

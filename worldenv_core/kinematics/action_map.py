@@ -77,3 +77,16 @@ def draw_action_maps_per_rollout(states: torch.Tensor, cameras: list[PinholeCame
     for idx in groups.values():
         out[idx] = draw_action_maps(states[idx].float(), cameras[idx[0]], size=size)
     return out
+
+
+def gripper_mask(states: torch.Tensor, camera: PinholeCamera, size: int | None = None, reach: float = 0.15) -> torch.Tensor:
+    """states (N, 7) -> (N, S, S) bool: the pixels within `reach` image widths of the projected
+    gripper (by default 3x the action map's open disc: the hand and fingers as the camera sees them):
+    where a world model must keep the robot, measured apart from the rest of the frame."""
+    size = int(size or camera.image_size)
+    (centre, _) = camera.project(states[:, :3].to(torch.float32))
+    centre = (centre + 0.5) * (size / camera.image_size) - 0.5
+    ys, xs = torch.meshgrid(torch.arange(size, dtype=torch.float32), torch.arange(size, dtype=torch.float32),
+                            indexing="ij")
+    grid = torch.stack([xs, ys], dim=-1).to(centre.device)
+    return (grid - centre[:, None, None, :]).norm(dim=-1) <= reach * size

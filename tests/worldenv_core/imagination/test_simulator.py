@@ -53,6 +53,10 @@ def test_open_loop_fidelity_scores_each_horizon_against_copy_last():
     real, imagined = out["videos"][0]
     assert real.shape == imagined.shape and imagined.shape[0] == 8
     assert all(0 < out["horizons"][h]["model_psnr"] < 100 for h in (4, 8))
+    for h in (4, 8):  # the gripper's region scored apart (the synthetic episodes' proprio projects into the frame)
+        row = out["horizons"][h]
+        assert 0 < row["model_psnr_gripper"] < 100 and -1 <= row["model_ssim_gripper"] <= 1
+        assert -1 <= row["copy_ssim_gripper"] <= 1
 
 
 def test_rendered_copy_draws_every_frame_but_the_context_through_the_world_model():

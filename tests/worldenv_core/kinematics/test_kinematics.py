@@ -85,6 +85,22 @@ def test_action_map_marker_sits_at_the_projection(tiny_env, expert_traj):
     assert area[1] > area[2]  # an open gripper draws a larger disc than a closed one
 
 
+def test_the_gripper_mask_covers_the_real_gripper_and_little_else(tiny_env, expert_traj):
+    """The region open-loop fidelity scores the robot in: around the projected grip site, holding the
+    gripper's rendered pixels, a small share of the frame."""
+    from worldenv_core.kinematics.action_map import gripper_mask
+
+    size = 128
+    for f in expert_traj.frames[::50]:
+        tiny_env.set_sim_state(f.sim_state)
+        cam = PinholeCamera.from_sim(tiny_env.sim, "agentview", size)
+        (mask,) = gripper_mask(torch.tensor(f.proprio[None]), cam, size)
+        gripper = _gripper_pixels(tiny_env, size)
+        inside = mask[torch.as_tensor(gripper[:, 0]), torch.as_tensor(gripper[:, 1])].float().mean()
+        assert inside > 0.8, f"{inside:.2f} of the gripper's pixels in its mask"
+        assert 0.0 < mask.float().mean() < 0.08  # pi x 0.15^2 of the frame when all of it is inside
+
+
 def test_axis_angle_round_trip():
     v = torch.tensor([[0.3, -1.2, 2.0], [0.0, 0.0, 1e-3]], dtype=torch.float64)
     from pytorch_kinematics.transforms import matrix_to_axis_angle
