@@ -7,9 +7,13 @@ import torch
 from torch.nn import functional as F
 
 
-def psnr(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """Peak signal-to-noise ratio in dB per image (...,)."""
-    mse = (pred.float() - target.float()).pow(2).flatten(-3).mean(-1)
+def psnr(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Peak signal-to-noise ratio in dB per image (...,); `mask` (..., H, W) bool: over those pixels only."""
+    err = (pred.float() - target.float()).pow(2)
+    if mask is None:
+        mse = err.flatten(-3).mean(-1)
+    else:
+        mse = (err.mean(-3) * mask).flatten(-2).sum(-1) / mask.flatten(-2).sum(-1).clamp(min=1)
     return 10 * torch.log10(1.0 / mse.clamp(min=1e-10))
 
 

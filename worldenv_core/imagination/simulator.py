@@ -180,10 +180,8 @@ def open_loop_fidelity(sim: ImaginedSimulator, episodes, horizons=(8, 16, 32, 64
                        if sim.camera is not None else None)
             _ssim_by_region(rows[h], ssim_map(fake, real), ssim_map(copy, real), real, copy, gripper)
             if gripper is not None:
-                for name, pred in (("model", fake), ("copy", copy)):
-                    err = ((pred - real) ** 2).mean(1)  # (N, H, W)
-                    mse = (err * gripper).flatten(1).sum(1) / gripper.flatten(1).sum(1).clamp(min=1)
-                    rows[h][f"{name}_psnr_gripper"] += (10 * torch.log10(1.0 / mse.clamp(min=1e-10))).tolist()
+                rows[h]["model_psnr_gripper"] += psnr(fake, real, gripper).tolist()
+                rows[h]["copy_psnr_gripper"] += psnr(copy, real, gripper).tolist()
         s0 = starts[0]
         videos.append((imgs[s0 + 1:s0 + 1 + frames.shape[1]], frames[0, : ep.length - s0]))
     summary = {h: {key: (sum(v) / len(v) if v else float("nan")) for key, v in r.items()} | {"n": len(r["model_psnr"])}

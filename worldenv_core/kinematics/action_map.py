@@ -18,6 +18,19 @@ AXIS_LENGTH_M = 0.10
 AXIS_COLOURS = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 
 
+def _pixel_grid(size: int, device) -> torch.Tensor:
+    """(S, S, 2) pixel centres as (u, v)."""
+    ys, xs = torch.meshgrid(torch.arange(size, dtype=torch.float32), torch.arange(size, dtype=torch.float32),
+                            indexing="ij")
+    return torch.stack([xs, ys], dim=-1).to(device)
+
+
+def _project_to(points: torch.Tensor, camera: PinholeCamera, size: int) -> torch.Tensor:
+    """points (..., 3) -> their pixel positions (..., 2) in an image of `size` (the camera's own resized)."""
+    uv, _ = camera.project(points)
+    return (uv + 0.5) * (size / camera.image_size) - 0.5  # pixel centres at the new size
+
+
 def _coverage(dist: torch.Tensor, radius: torch.Tensor | float) -> torch.Tensor:
     """Pixel coverage of a shape whose edge is at `radius` from its skeleton (1-pixel ramp)."""
     return (radius + 0.5 - dist).clamp(0.0, 1.0)
@@ -39,19 +52,14 @@ def draw_action_maps(states: torch.Tensor, camera: PinholeCamera, size: int | No
     to a fraction of the size so that maps look alike at every resolution: a disc of 2 %..5 % of
     the width, lines of 0.8 %."""
     size = int(size or camera.image_size)
-    zoom = size / camera.image_size
     r_closed, r_open = radius_px or (0.02 * size, 0.05 * size)
     half_line = 0.5 * (line_px or max(1.0, 0.008 * size))
     lead = states.shape[:-1]
     s = states.reshape(-1, 7).to(torch.float32)
     pos, rot = s[:, :3], axis_angle_to_matrix(s[:, 3:6])
     ends = pos[:, None, :] + AXIS_LENGTH_M * rot.transpose(1, 2)  # (N, 3 axes, 3): rows = axis directions
-    (centre, _), (tips, _) = camera.project(pos), camera.project(ends)
-    centre, tips = (centre + 0.5) * zoom - 0.5, (tips + 0.5) * zoom - 0.5  # pixel centres at the new size
-
-    ys, xs = torch.meshgrid(torch.arange(size, dtype=torch.float32), torch.arange(size, dtype=torch.float32),
-                            indexing="ij")
-    grid = torch.stack([xs, ys], dim=-1).to(s.device)  # (H, W, 2) as (u, v)
+    centre, tips = _project_to(pos, camera, size), _project_to(ends, camera, size)
+    grid = _pixel_grid(size, s.device)  # (H, W, 2) as (u, v)
     radius = r_closed + (r_open - r_closed) * s[:, 6].clamp(0, 1)
     disc = _coverage((grid - centre[:, None, None, :]).norm(dim=-1), radius[:, None, None])  # (N, H, W)
     lines = _coverage(_segment_distance(grid, centre[:, None, :].expand_as(tips), tips), half_line)  # (N, 3, H, W)
@@ -84,9 +92,5 @@ def gripper_mask(states: torch.Tensor, camera: PinholeCamera, size: int | None =
     gripper (by default 3x the action map's open disc: the hand and fingers as the camera sees them):
     where a world model must keep the robot, measured apart from the rest of the frame."""
     size = int(size or camera.image_size)
-    (centre, _) = camera.project(states[:, :3].to(torch.float32))
-    centre = (centre + 0.5) * (size / camera.image_size) - 0.5
-    ys, xs = torch.meshgrid(torch.arange(size, dtype=torch.float32), torch.arange(size, dtype=torch.float32),
-                            indexing="ij")
-    grid = torch.stack([xs, ys], dim=-1).to(centre.device)
-    return (grid - centre[:, None, None, :]).norm(dim=-1) <= reach * size
+    centre = _project_to(states[:, :3].to(torch.float32), camera, size)
+    return (_pixel_grid(size, centre.device) - centre[:, None, None, :]).norm(dim=-1) <= reach * size
