@@ -40,6 +40,7 @@ from worldenv_core.data.selection import collected_episodes
 from worldenv_core.imagination.context_pack import read_context_pack
 from worldenv_core.manifest import StageRun
 from worldenv_core.models.checkpoint import load_checkpoint, read_config
+from worldenv_core.rl.filtered_bc import SuccessBuffer
 from worldenv_core.rl.loop import OPTIMIZERS, check_success_range, make_optimizer
 from worldenv_core.rl.termination import check_eta
 from worldenv_core.stage import (ConfigError, positive_int, require_task, resolve_checkpoint, resolve_policy, resolved,
@@ -53,12 +54,13 @@ log = logging.getLogger("worldenv.post_train_loop")
 # imagined: the method (world simulator + reflector); real: the reference, the real simulator and its oracle
 ENVS = ("imagined", "real")
 VERDICTS = ("own", "permuted")  # rl.verdicts: the environment's, or the control's shuffle of them
+UPDATES = ("ppo", "filtered_bc")  # rl.policy_update: LOOP's PPO step, or behaviour cloning of the successes so far
 CONTEXTS = ("episodes", "placements")  # rl.contexts: collected episodes' starts, or fresh placements (env=real)
 # rl settings added after runs were made: at these values a run keeps the work dir it had before them
 RL_DEFAULTS = {"mid_episode_frames": 0, "verdicts": "own", "contexts": "episodes", "group_success": None,
                "max_kl": None, "kl_states": 512, "optimizer": "adam", "reset_optimizer": False, "train_scale_head": True,
                "direction_check": False, "noise_scale": 1.0, "guard_contexts": 0, "guard_rollouts": 4,
-               "guard_max_hack_rate": 0.5}
+               "guard_max_hack_rate": 0.5, "policy_update": "ppo", "bc_steps": 200, "bc_minibatch": 32, "bc_augment_shift": 4}
 # top-level settings added later, kept out of the settings hash and work dir at these values
 LATER_DEFAULTS = {"contexts_to": None, "contexts_from": None, "minutes": None}
 
@@ -124,6 +126,11 @@ def validate(cfg: DictConfig) -> None:
     if cfg.minutes is not None and not cfg.minutes > 0:
         raise ConfigError(f"minutes must be > 0 or null (rl.iterations as given), got {cfg.minutes}")
     validate_guard(cfg)
+    if cfg.rl.policy_update not in UPDATES:
+        raise ConfigError(f"rl.policy_update must be one of {list(UPDATES)}, got {cfg.rl.policy_update!r}")
+    positive_int(cfg, "rl.bc_steps")
+    positive_int(cfg, "rl.bc_minibatch")
+    positive_int(cfg, "rl.bc_augment_shift", allow_zero=True)
 
 
 def validate_guard(cfg: DictConfig) -> None:
@@ -194,8 +201,9 @@ def run(cfg: DictConfig) -> dict:
                  "on %s; work dir %s", policy_path, rl.iterations, cfg.env, rl.contexts_per_iteration, rl.n_rollouts,
                  "oracle" if real else f"{src.eta:.2f}", device, work)
         evaluate = evaluator(cfg, contract, src, policy, policy_path, encode, trainer, work, packed, provenance)
+        buffer = SuccessBuffer(work / "success_buffer") if rl.policy_update == "filtered_bc" else None  # kept: the data
         trainer.fit([rl_phase(policy, optimizer, collect, src.n_contexts, rl, cfg.seed,
-                              paired_guard(cfg, contract, src, encode))], evaluate=evaluate,
+                              paired_guard(cfg, contract, src, encode), buffer)], evaluate=evaluate,
                     evaluate_every=cfg.eval.every, deadline=deadline)
         shutil.rmtree(work / "rollout_journal", ignore_errors=True)  # every iteration it kept is checkpointed now
         final = trainer.save_final(work / "policy", iteration=trainer.step)
@@ -244,7 +252,7 @@ def _time_iterations(policy, collect, src: Rollouts, rl, cfg: DictConfig, second
     probe_opt = make_optimizer(probe_policy, rl.optimizer, rl.lr_backbone, rl.lr_heads, rl.train_scale_head)
     probe_rl = copy.deepcopy(rl)
     probe_rl.iterations = 4
-    probe = rl_phase(probe_policy, probe_opt, collect, src.n_contexts, probe_rl, cfg.seed)
+    probe = rl_phase(probe_policy, probe_opt, collect, src.n_contexts, probe_rl, cfg.seed, buffer=SuccessBuffer(None))
     return planned_steps(probe.step, iter(probe.batches(0)), seconds, probe=3, warm=1)
 
 

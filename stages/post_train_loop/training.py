@@ -6,6 +6,7 @@ iteration draws its rollouts with, and one RL iteration as the Trainer's step.""
 from __future__ import annotations
 
 import copy
+import hashlib
 import itertools
 import logging
 import shutil
@@ -26,8 +27,9 @@ from worldenv_core.errors import ConfigError
 from worldenv_core.imagination.context_pack import ContextPack, write_context_pack
 from worldenv_core.imagination.env import Context, build_imagined_env, mid_episode_frames
 from worldenv_core.models.checkpoint import read_config, save_model
-from worldenv_core.rl.loop import (RolloutBatch, check_success_range, collect_rollouts, informative_groups, merge,
-                                   permute_verdicts, ppo_update, select)
+from worldenv_core.rl.filtered_bc import SuccessBuffer, bc_update
+from worldenv_core.rl.loop import (RolloutBatch, check_success_range, collect_rollouts, informative_groups, kl_probe,
+                                   merge, permute_verdicts, ppo_update, select)
 from worldenv_core.rl.real_rollouts import collect_real_rollouts
 from worldenv_core.rl.termination import reflector_eta
 from worldenv_core.training import Phase, per_step, step_seed
@@ -126,7 +128,7 @@ def paired_guard(cfg: DictConfig, contract: TaskContract, src: "Rollouts", encod
 
 
 def rl_phase(policy, optimizer, collect: Collect, n_contexts: int | None, rl, seed: int,
-             guard: Callable | None = None) -> Phase:
+             guard: Callable | None = None, buffer: SuccessBuffer | None = None) -> Phase:
     """One iteration = one step: N rollouts from each of a few contexts by the frozen behaviour
     policy (Algorithm 1 line 3), then `ppo_epochs` passes of PPO on their RLOO advantages, over
     the groups whose verdicts disagree (`rl.filter_groups`; none: no update this iteration).
@@ -139,7 +141,12 @@ def rl_phase(policy, optimizer, collect: Collect, n_contexts: int | None, rl, se
     odds of about iterations^2 x contexts / 2^41). The recipe's other settings
     (`rl.group_success`, `rl.max_kl`, `rl.reset_optimizer`) are read here. `guard` (`paired_guard`):
     an update after which its hack rate exceeds `rl.guard_max_hack_rate` is undone, weights and
-    optimiser state (`rolled_back`)."""
+    optimiser state (`rolled_back`). `rl.policy_update=filtered_bc`: instead of PPO, the iteration's successful
+    rollouts join `buffer` and the policy's mean is fitted to all of the buffer's chunks
+    (`filtered_bc.bc_update`, `rl.bc_steps` steps of `rl.bc_minibatch`)."""
+    filtered_bc = rl.get("policy_update", "ppo") == "filtered_bc"
+    if filtered_bc and buffer is None:
+        raise ValueError("rl.policy_update=filtered_bc needs a SuccessBuffer")
     success_range = check_success_range(rl.get("group_success"))
 
     def step(g: torch.Generator) -> dict:
@@ -149,7 +156,8 @@ def rl_phase(policy, optimizer, collect: Collect, n_contexts: int | None, rl, se
             picks = list(range(base, base + rl.contexts_per_iteration))
         else:
             picks = torch.randint(n_contexts, (rl.contexts_per_iteration,), generator=g).tolist()
-        streams = [torch.Generator().manual_seed(s) for s in torch.randint(2**62, (len(picks),), generator=g).tolist()]
+        stream_seeds = torch.randint(2**62, (len(picks),), generator=g).tolist()
+        streams = [torch.Generator().manual_seed(s) for s in stream_seeds]
         mine = distributed.shard(list(range(len(picks))), distributed.rank(), distributed.world_size())
         behaviour = copy.deepcopy(policy).eval()
         batch = merge(distributed.gather(collect(behaviour, [picks[i] for i in mine], [streams[i] for i in mine])))
@@ -161,18 +169,28 @@ def rl_phase(policy, optimizer, collect: Collect, n_contexts: int | None, rl, se
             optimizer.state.clear()
         t_update = time.perf_counter()
         undo = ([p.detach().clone() for p in policy.parameters()], copy.deepcopy(optimizer.state_dict())) if guard else None
-        stats = (ppo_update(policy, optimizer, select(batch, keep), rl.ppo_epochs, rl.epsilon, rl.minibatch, generator=g,
-                            target_kl=rl.target_kl, max_kl=rl.get("max_kl"), kl_states=rl.get("kl_states", 512),
-                            direction_groups=rl.n_rollouts if rl.get("direction_check") else None)
-                 if keep.any() else {})
+        if filtered_bc:  # the iteration's successes join the buffer under what drew the iteration (a resume rewrites it)
+            key = hashlib.sha1(repr((picks, stream_seeds)).encode()).hexdigest()[:16]
+            added = buffer.add(key, batch)
+            stats = bc_update(policy, optimizer, buffer, rl.bc_steps, rl.bc_minibatch, g, rl.bc_augment_shift)
+            probe = kl_probe(batch, rl.get("kl_states", 512), g)  # how far the update moved, in PPO's units
+            stats.update({"buffer_added": added, **(probe.summary(policy) if probe is not None else {})})
+        else:
+            stats = (ppo_update(policy, optimizer, select(batch, keep), rl.ppo_epochs, rl.epsilon, rl.minibatch,
+                                generator=g, target_kl=rl.target_kl, max_kl=rl.get("max_kl"),
+                                kl_states=rl.get("kl_states", 512),
+                                direction_groups=rl.n_rollouts if rl.get("direction_check") else None)
+                     if keep.any() else {})
         stats["update_seconds"] = time.perf_counter() - t_update
-        if guard is not None and stats.get("ppo_steps"):
+        if guard is not None and (stats.get("ppo_steps") or stats.get("bc_steps")):
             stats.update(guard(policy))
             if stats["guard_hack_rate"] > rl.guard_max_hack_rate:  # NaN (no imagined success) passes
                 with torch.no_grad():
                     for p, old in zip(policy.parameters(), undo[0]):
                         p.copy_(old)
                 optimizer.load_state_dict(undo[1])
+                if filtered_bc:  # the successes the policy just imitated include the hacks the guard caught
+                    buffer.remove(key)
                 stats["rolled_back"] = 1.0
                 log.info("update undone: the guard's hack rate %.2f is above %.2f", stats["guard_hack_rate"],
                          rl.guard_max_hack_rate)

@@ -224,7 +224,7 @@ def ppo_update(policy, optimizer, batch: RolloutBatch, epochs: int, epsilon: flo
     stats: dict[str, list[float]] = {"loss": [], "clip_fraction": [], "approx_kl": [], "ratio_mean": []}
     steps, shrunk, first_kl, stopped = 0, 0, None, False
     order = [idx for _ in range(epochs) for idx in torch.randperm(r, generator=generator).split(minibatch)]
-    probe = _kl_probe(batch, kl_states, generator)  # drawn after the order: the minibatches are as before
+    probe = kl_probe(batch, kl_states, generator)  # drawn after the order: the minibatches are as before
     direction = _direction_cosine(policy, batch, direction_groups, epsilon) if direction_groups else None
     for idx in order:
         loss, s = _rollouts_loss(policy, batch, idx, epsilon)
@@ -335,7 +335,7 @@ def _interpolate(params, before, after, w: float) -> None:
 
 
 @dataclass
-class _KLProbe:
+class KLProbe:
     """Fixed chunk states of a batch and the behaviour's Laplace at them: how far the policy moved."""
 
     frames: torch.Tensor
@@ -372,7 +372,7 @@ class _KLProbe:
         return self.summary(policy)["exact_kl"]
 
 
-def _kl_probe(batch: RolloutBatch, n: int, generator: torch.Generator | None) -> _KLProbe | None:
+def kl_probe(batch: RolloutBatch, n: int, generator: torch.Generator | None) -> KLProbe | None:
     """Up to `n` of the batch's live chunk states, drawn once per update."""
     if batch.mu_old is None:
         return None
@@ -380,7 +380,7 @@ def _kl_probe(batch: RolloutBatch, n: int, generator: torch.Generator | None) ->
     if len(rows) > n:
         pick = torch.randperm(len(rows), generator=generator)[:n]
         rows, cols = rows[pick], cols[pick]
-    return _KLProbe(frames=batch.frames[rows, cols], proprio=batch.proprio[rows, cols],
+    return KLProbe(frames=batch.frames[rows, cols], proprio=batch.proprio[rows, cols],
                     instruction=batch.instruction[rows], mu_old=batch.mu_old[rows, cols].detach(),
                     beta_old=batch.beta_old[rows, cols].detach(), mask=batch.mask[rows, cols],
                     noise_scale=batch.noise_scale)

@@ -332,3 +332,23 @@ def test_the_paired_replay_guard_measures_the_update_and_undoes_one_that_follows
         post_train_loop(cfg("post_train_loop", exp, *LOOP, "env=real", "rl.guard_contexts=1"))
     with pytest.raises(ConfigError, match="guard_max_hack_rate must be in"):
         post_train_loop(cfg("post_train_loop", exp, *LOOP, "rl.guard_contexts=1", "rl.guard_max_hack_rate=2"))
+
+
+def test_filtered_bc_imitates_the_successes_kept_in_the_work_dir(trained):
+    """rl.policy_update=filtered_bc: at eta 0 every imagined rollout succeeds, so each iteration's
+    rollouts join the buffer (a file per iteration in the work dir, kept after the run) and the
+    policy's mean is fitted to all of them; no PPO step is taken. Bad settings are named first."""
+    exp, _ = trained
+    metrics = post_train_loop(cfg("post_train_loop", exp, *LOOP, "eval.every=0", "eta=0.0",
+                                  "rl.policy_update=filtered_bc", "rl.bc_steps=3", "rl.bc_minibatch=2"))
+    rec = Manifest(exp).latest("post_train_loop", task="tiny", eta=0.0)
+    history = json.loads(Path(next(p for p in Manifest(exp).resolve(rec) if p.name == "training.json")).read_text())
+    steps = [h for h in history if "mean_reward" in h]
+    assert [h["buffer_rollouts"] for h in steps] == [2, 4] and all(h["bc_steps"] == 3 for h in steps)
+    assert all("ppo_steps" not in h and h["exact_kl"] > 0 for h in steps) and metrics["iterations"] == 2
+    work = Path(next(p for p in Manifest(exp).resolve(rec) if p.name == "training.json")).parent
+    assert len(list((work / "success_buffer").glob("*.pt"))) == 2
+    for override, match in (("rl.policy_update=dpo", r"rl.policy_update must be one of \['ppo', 'filtered_bc'\]"),
+                            ("rl.bc_steps=0", "rl.bc_steps")):
+        with pytest.raises(ConfigError, match=match):
+            post_train_loop(cfg("post_train_loop", exp, *LOOP, override))

@@ -256,14 +256,14 @@ def test_the_trust_regions_kl_is_of_the_distributions_the_actions_were_drawn_fro
     the sampling distributions (scale k e^beta): about 1/k^2 of it for a small move."""
     import dataclasses
 
-    from worldenv_core.rl.loop import _kl_probe, collect_rollouts
+    from worldenv_core.rl.loop import kl_probe, collect_rollouts
 
     policy, contexts, encoder = _policy_and_contexts()
     batch = collect_rollouts(policy, ActionRewardEnv(), contexts, 4, encoder, torch.Generator().manual_seed(0))
     with torch.no_grad():
         for p in policy.parameters():
             p.add_(1e-3 * torch.randn_like(p))
-    kls = {k: _kl_probe(dataclasses.replace(batch, noise_scale=k), 512, None).summary(policy) for k in (1.0, 2.0)}
+    kls = {k: kl_probe(dataclasses.replace(batch, noise_scale=k), 512, None).summary(policy) for k in (1.0, 2.0)}
     assert kls[1.0]["action_shift_rms"] == kls[2.0]["action_shift_rms"] > 0
     assert 0.15 < kls[2.0]["exact_kl"] / kls[1.0]["exact_kl"] < 0.6
 
