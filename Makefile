@@ -138,7 +138,7 @@ research-checkpoints:
 # LOOP with the true reward in the real simulator from the released SFT policy (the RL recipe's campaign,
 # results/rl_campaign.md): resumable, the same command continues from the last iteration.
 # make rl-real TASK=libero_spatial RECIPE=trust_region SEED=0 RL_ITERATIONS=40 EVAL_EVERY=4
-# (RECIPE=explore: 256 episodes an iteration, so RL_ITERATIONS=20 EVAL_EVERY=2 for the same budget and points)
+# (RECIPE=explore or filtered_bc: 256 episodes an iteration, so RL_ITERATIONS=20 EVAL_EVERY=2 for the same budget and points)
 RECIPE ?= trust_region
 SEED ?= 0
 RL_ITERATIONS ?= 40
