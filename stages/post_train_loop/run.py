@@ -60,7 +60,8 @@ CONTEXTS = ("episodes", "placements")  # rl.contexts: collected episodes' starts
 RL_DEFAULTS = {"mid_episode_frames": 0, "verdicts": "own", "contexts": "episodes", "group_success": None,
                "max_kl": None, "kl_states": 512, "optimizer": "adam", "reset_optimizer": False, "train_scale_head": True,
                "direction_check": False, "noise_scale": 1.0, "guard_contexts": 0, "guard_rollouts": 4,
-               "guard_max_hack_rate": 0.5, "policy_update": "ppo", "bc_steps": 200, "bc_minibatch": 32, "bc_augment_shift": 4}
+               "guard_max_hack_rate": 0.5, "policy_update": "ppo", "bc_steps": 200, "bc_minibatch": 32, "bc_augment_shift": 4,
+               "placement_pool": None}
 # top-level settings added later, kept out of the settings hash and work dir at these values
 LATER_DEFAULTS = {"contexts_to": None, "contexts_from": None, "minutes": None}
 
@@ -115,6 +116,10 @@ def validate(cfg: DictConfig) -> None:
     if cfg.rl.contexts == "placements" and (cfg.env != "real" or cfg.rl.mid_episode_frames):
         raise ConfigError("rl.contexts=placements draws fresh scenes in the real simulator: it needs env=real and "
                           "rl.mid_episode_frames=0 (the imagined route starts from recorded frames)")
+    if cfg.rl.placement_pool is not None and (cfg.rl.contexts != "placements" or not isinstance(cfg.rl.placement_pool, int)
+                                              or cfg.rl.placement_pool < 1):
+        raise ConfigError(f"rl.placement_pool is a number of fixed fresh placements (> 0, with rl.contexts=placements) "
+                          f"or null, got {cfg.rl.placement_pool!r} with rl.contexts={cfg.rl.contexts}")
     if cfg.rl.verdicts not in VERDICTS:
         raise ConfigError(f"rl.verdicts must be one of {list(VERDICTS)}, got {cfg.rl.verdicts!r}")
     if cfg.env not in ENVS:

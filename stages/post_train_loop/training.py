@@ -75,7 +75,9 @@ def imagined_collector(env, contexts: list[Context], n_rollouts: int, encode, no
 def placements(contract) -> Callable[[int], tuple[RealStart, str]]:
     """Context number k -> a fresh placement of the suite's tasks trained on (`rl.contexts=placements`):
     consecutive numbers cycle through the tasks, so an iteration's contexts spread evenly over them,
-    and each number is its own placement (`envs.placements`, never a benchmark init state)."""
+    and each number is its own placement (`envs.placements`, never a benchmark init state). With
+    `rl.placement_pool` = P the numbers are 0..P-1, drawn as collected episodes' starts are: P fixed
+    placements, each revisited, between the paper's 5 starts per task and a new start per group."""
     from worldenv_core.envs.replay import placement_starts
     from worldenv_core.envs.tasks import get_task
 
@@ -224,7 +226,9 @@ def rollouts(cfg: DictConfig, stage, contract: TaskContract, policy, encode, epi
     rl = cfg.rl
     if cfg.env == "real":  # the reference: no world model, no reflector; the oracle decides
         out = Rollouts(camera=contract.cameras[0])
-        if rl.contexts != "placements":
+        if rl.contexts == "placements":  # None: a new placement per context; P: the same P placements throughout
+            out.n_contexts = rl.get("placement_pool") or None
+        else:
             out.starts, out.instructions = real_starts(episodes, rl.mid_episode_frames)
             keep = chosen(cfg, stage, contract, out.starts)
             out.starts, out.instructions = [out.starts[i] for i in keep], [out.instructions[i] for i in keep]
@@ -269,7 +273,7 @@ def collector(cfg: DictConfig, contract: TaskContract, src: Rollouts, encode, po
     rl = cfg.rl
     if cfg.env != "real":
         return imagined_collector(src.env, src.contexts, rl.n_rollouts, encode, rl.noise_scale)
-    starts = placements(contract) if src.n_contexts is None else src.starts
+    starts = placements(contract) if rl.contexts == "placements" else src.starts
     return real_collector(contract, starts, src.instructions, rl.n_rollouts, encode, rl.horizon,
                           read_config(policy_path)["model"], pmeta, work, cfg.eval.workers, cfg.progress, rl.noise_scale)
 

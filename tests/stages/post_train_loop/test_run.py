@@ -202,11 +202,17 @@ def test_the_real_route_from_fresh_placements_with_a_validation_set_and_a_trust_
     for override, match in (("rl.contexts=scenes", r"rl.contexts must be one of \['episodes', 'placements'\]"),
                             ("rl.group_success=[0.9,0.1]", "rl.group_success: .*two fractions"),
                             ("rl.max_kl=0", "max_kl .* must be > 0"), ("rl.optimizer=rmsprop", "rl.optimizer must be"),
-                            ("rl.lr_heads=0", "one of them > 0")):
+                            ("rl.lr_heads=0", "one of them > 0"),
+                            ("rl.placement_pool=0", "placement_pool is a number of fixed fresh placements")):
         with pytest.raises(ConfigError, match=match):
             post_train_loop(cfg("post_train_loop", exp, *LOOP, "env=real", "rl.lr_backbone=0", override))
     with pytest.raises(ConfigError, match="placements .* needs env=real"):
         post_train_loop(cfg("post_train_loop", exp, *LOOP, "rl.contexts=placements"))
+    with pytest.raises(ConfigError, match="placement_pool .* with rl.contexts=episodes"):
+        post_train_loop(cfg("post_train_loop", exp, *LOOP, "env=real", "rl.placement_pool=10"))
+    pooled = post_train_loop(cfg("post_train_loop", exp, *LOOP, "env=real", "rl.contexts=placements", "rl.iterations=1",
+                                 "eval.every=0", "rl.placement_pool=3"))
+    assert pooled["contexts"] == 3 and pooled["train_real_episodes"] == 2
 
 
 def test_rollouts_start_part_way_through_the_collected_episodes(trained):

@@ -67,3 +67,22 @@ def test_the_guard_undoes_an_update_whose_hack_rate_is_above_its_bound():
         assert measured == [True] and stats["ppo_steps"] > 0 and stats["guard_episodes"] == 4
         assert same == undone and stats.get("rolled_back", 0.0) == float(undone)
         assert (len(optimizer.state) == 0) == undone  # Adam's moments of the undone steps are gone too
+
+
+def test_a_placement_pool_draws_the_same_fixed_placements_every_iteration():
+    """n_contexts = P (`rl.placement_pool`): every iteration's context numbers lie in 0..P-1, so the same P
+    fresh placements recur across iterations (each start revisited), unlike the runs of new numbers above."""
+    seen = []
+
+    def collect(behaviour, picks, gens):
+        seen.append(picks)
+        raise StopIteration
+    rl = OmegaConf.create({"iterations": 4, "contexts_per_iteration": 6, "n_rollouts": 2})
+    phase = rl_phase(torch.nn.Linear(1, 1), None, collect, 5, rl, seed=0)
+    for it in range(4):
+        try:
+            phase.step(torch.Generator().manual_seed(it))
+        except StopIteration:
+            pass
+    drawn = {k for p in seen for k in p}
+    assert drawn <= set(range(5)) and len(drawn) >= 4 and all(len(p) == 6 for p in seen)
