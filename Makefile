@@ -137,16 +137,17 @@ research-checkpoints:
 
 # LOOP with the true reward in the real simulator from the released SFT policy (the RL recipe's campaign,
 # results/rl_campaign.md): resumable, the same command continues from the last iteration.
-# make rl-real TASK=libero_spatial RECIPE=trust_region SEED=0 RL_ITERATIONS=40 EVAL_EVERY=4
+# make rl-real TASK=libero_spatial RECIPE=trust_region SEED=0 RL_ITERATIONS=40 EVAL_EVERY=4 [RL_ARGS=rl.placement_pool=100]
 # (RECIPE=explore or filtered_bc: 256 episodes an iteration, so RL_ITERATIONS=20 EVAL_EVERY=2 for the same budget and points)
 RECIPE ?= trust_region
 SEED ?= 0
 RL_ITERATIONS ?= 40
 EVAL_EVERY ?= 4
+RL_ARGS ?=
 rl-real: setup
 	$(PY) -m stages.post_train_loop +task=$(TASK) scale=$(SCALE) experiment_dir=$(EXP) env=real rl=$(RECIPE) \
 	  policy_from=checkpoints/$(TASK)/sft rl.iterations=$(RL_ITERATIONS) eval.every=$(EVAL_EVERY) eval.init_states=0 \
-	  eval.validation=100 eval.workers=2 seed=$(SEED)
+	  eval.validation=100 eval.workers=2 seed=$(SEED) $(RL_ARGS)
 
 # The same pipeline on the tiny task and scale: minutes, proves the plumbing.
 smoke:
