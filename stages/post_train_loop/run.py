@@ -40,6 +40,7 @@ from worldenv_core.data.selection import collected_episodes
 from worldenv_core.imagination.context_pack import read_context_pack
 from worldenv_core.manifest import StageRun
 from worldenv_core.models.checkpoint import load_checkpoint, read_config
+from worldenv_core.rl.critic import ChunkValue
 from worldenv_core.rl.filtered_bc import SuccessBuffer
 from worldenv_core.rl.loop import OPTIMIZERS, check_success_range, make_optimizer
 from worldenv_core.rl.termination import check_eta
@@ -55,13 +56,15 @@ log = logging.getLogger("worldenv.post_train_loop")
 ENVS = ("imagined", "real")
 VERDICTS = ("own", "permuted")  # rl.verdicts: the environment's, or the control's shuffle of them
 UPDATES = ("ppo", "filtered_bc")  # rl.policy_update: LOOP's PPO step, or behaviour cloning of the successes so far
+ADVANTAGES = ("rloo", "gae")  # rl.advantages: one per rollout (the paper's RLOO), or per chunk from a critic
 CONTEXTS = ("episodes", "placements")  # rl.contexts: collected episodes' starts, or fresh placements (env=real)
 # rl settings added after runs were made: at these values a run keeps the work dir it had before them
 RL_DEFAULTS = {"mid_episode_frames": 0, "verdicts": "own", "contexts": "episodes", "group_success": None,
                "max_kl": None, "kl_states": 512, "optimizer": "adam", "reset_optimizer": False, "train_scale_head": True,
                "direction_check": False, "noise_scale": 1.0, "guard_contexts": 0, "guard_rollouts": 4,
                "guard_max_hack_rate": 0.5, "policy_update": "ppo", "bc_steps": 200, "bc_minibatch": 32, "bc_augment_shift": 4,
-               "placement_pool": None}
+               "placement_pool": None, "advantages": "rloo", "gae_lambda": 0.95, "critic_steps": 500,
+               "critic_minibatch": 256, "critic_lr": 1e-3, "critic_hidden": 256}
 # top-level settings added later, kept out of the settings hash and work dir at these values
 LATER_DEFAULTS = {"contexts_to": None, "contexts_from": None, "minutes": None}
 
@@ -136,6 +139,17 @@ def validate(cfg: DictConfig) -> None:
     positive_int(cfg, "rl.bc_steps")
     positive_int(cfg, "rl.bc_minibatch")
     positive_int(cfg, "rl.bc_augment_shift", allow_zero=True)
+    if cfg.rl.advantages not in ADVANTAGES:
+        raise ConfigError(f"rl.advantages must be one of {list(ADVANTAGES)}, got {cfg.rl.advantages!r}")
+    if cfg.rl.advantages == "gae":
+        if cfg.rl.policy_update != "ppo":
+            raise ConfigError(f"rl.advantages=gae weighs PPO's steps; rl.policy_update={cfg.rl.policy_update} uses none")
+        if not 0.0 <= cfg.rl.gae_lambda <= 1.0:
+            raise ConfigError(f"rl.gae_lambda must be in [0, 1], got {cfg.rl.gae_lambda}")
+        for key in ("rl.critic_steps", "rl.critic_minibatch", "rl.critic_hidden"):
+            positive_int(cfg, key)
+        if not cfg.rl.critic_lr > 0:
+            raise ConfigError(f"rl.critic_lr must be > 0, got {cfg.rl.critic_lr}")
 
 
 def validate_guard(cfg: DictConfig) -> None:
@@ -198,17 +212,22 @@ def run(cfg: DictConfig) -> dict:
         if cfg.minutes:  # planned from iterations timed on copies, so the run itself starts from the untouched policy
             rl.iterations = planned_total(work, cfg.minutes, lambda s: _time_iterations(policy, collect, src, rl, cfg, s))
         provenance = {"policy": policy_path, "worldsim": worldsim_path, "reflector": reflector_path}
+        value = (ChunkValue(-(-int(rl.horizon) // contract.chunk), rl.critic_hidden, rl.critic_lr, rl.critic_steps,
+                            rl.critic_minibatch, rl.gae_lambda) if rl.advantages == "gae" else None)
         trainer = Trainer(work, policy, {"ppo": optimizer}, model_config=read_config(policy_path)["model"],
                           meta=loop_meta(pmeta, provenance, src, key.get("contexts_from")), log_every=1, checkpoint_every=1, desc="post_train_loop", progress=cfg.progress,
                           postfix=("mean_reward", "reflector_success_rate", "approx_kl"),
-                          tracker=make_tracker(cfg.get("logger"), work, "post_train_loop", contract.name, config))
+                          tracker=make_tracker(cfg.get("logger"), work, "post_train_loop", contract.name, config),
+                          extra_state=(lambda: {"critic": value.state_dict()}) if value else None)
+        if value is not None and "critic" in trainer.extra:  # a resumed run: the critic as of its last iteration
+            value.load_state_dict(trainer.extra["critic"], device)
         log.info("post-training %s for %d iterations in the %s environment: %d contexts x %d rollouts each, eta %s, "
                  "on %s; work dir %s", policy_path, rl.iterations, cfg.env, rl.contexts_per_iteration, rl.n_rollouts,
                  "oracle" if real else f"{src.eta:.2f}", device, work)
         evaluate = evaluator(cfg, contract, src, policy, policy_path, encode, trainer, work, packed, provenance)
         buffer = SuccessBuffer(work / "success_buffer") if rl.policy_update == "filtered_bc" else None  # kept: the data
         trainer.fit([rl_phase(policy, optimizer, collect, src.n_contexts, rl, cfg.seed,
-                              paired_guard(cfg, contract, src, encode), buffer)], evaluate=evaluate,
+                              paired_guard(cfg, contract, src, encode), buffer, value)], evaluate=evaluate,
                     evaluate_every=cfg.eval.every, deadline=deadline)
         shutil.rmtree(work / "rollout_journal", ignore_errors=True)  # every iteration it kept is checkpointed now
         final = trainer.save_final(work / "policy", iteration=trainer.step)

@@ -6,6 +6,7 @@ iteration draws its rollouts with, and one RL iteration as the Trainer's step.""
 from __future__ import annotations
 
 import copy
+import dataclasses
 import hashlib
 import itertools
 import logging
@@ -27,6 +28,7 @@ from worldenv_core.errors import ConfigError
 from worldenv_core.imagination.context_pack import ContextPack, write_context_pack
 from worldenv_core.imagination.env import Context, build_imagined_env, mid_episode_frames
 from worldenv_core.models.checkpoint import read_config, save_model
+from worldenv_core.rl.critic import ChunkValue
 from worldenv_core.rl.filtered_bc import SuccessBuffer, bc_update
 from worldenv_core.rl.loop import (RolloutBatch, check_success_range, collect_rollouts, informative_groups, kl_probe,
                                    merge, permute_verdicts, ppo_update, select)
@@ -130,7 +132,8 @@ def paired_guard(cfg: DictConfig, contract: TaskContract, src: "Rollouts", encod
 
 
 def rl_phase(policy, optimizer, collect: Collect, n_contexts: int | None, rl, seed: int,
-             guard: Callable | None = None, buffer: SuccessBuffer | None = None) -> Phase:
+             guard: Callable | None = None, buffer: SuccessBuffer | None = None,
+             critic: ChunkValue | None = None) -> Phase:
     """One iteration = one step: N rollouts from each of a few contexts by the frozen behaviour
     policy (Algorithm 1 line 3), then `ppo_epochs` passes of PPO on their RLOO advantages, over
     the groups whose verdicts disagree (`rl.filter_groups`; none: no update this iteration).
@@ -145,7 +148,9 @@ def rl_phase(policy, optimizer, collect: Collect, n_contexts: int | None, rl, se
     an update after which its hack rate exceeds `rl.guard_max_hack_rate` is undone, weights and
     optimiser state (`rolled_back`). `rl.policy_update=filtered_bc`: instead of PPO, the iteration's successful
     rollouts join `buffer` and the policy's mean is fitted to all of the buffer's chunks
-    (`filtered_bc.bc_update`, `rl.bc_steps` steps of `rl.bc_minibatch`)."""
+    (`filtered_bc.bc_update`, `rl.bc_steps` steps of `rl.bc_minibatch`). `critic` (`rl.advantages=gae`):
+    PPO on per-chunk advantages from a value learned on the earlier iterations' rollouts, then fitted
+    to this iteration's (`critic.ChunkValue`)."""
     filtered_bc = rl.get("policy_update", "ppo") == "filtered_bc"
     if filtered_bc and buffer is None:
         raise ValueError("rl.policy_update=filtered_bc needs a SuccessBuffer")
@@ -165,6 +170,12 @@ def rl_phase(policy, optimizer, collect: Collect, n_contexts: int | None, rl, se
         batch = merge(distributed.gather(collect(behaviour, [picks[i] for i in mine], [streams[i] for i in mine])))
         if rl.verdicts == "permuted":  # the control: the same successes on other rollouts
             batch = permute_verdicts(batch, rl.n_rollouts, g)
+        critic_stats = {}
+        if critic is not None:  # credit per chunk from what the critic learned before this batch; then it learns this one
+            t_critic = time.perf_counter()
+            advantages, critic_stats = critic.advantages(policy, batch, g)
+            batch = dataclasses.replace(batch, advantages=advantages)
+            critic_stats["critic_seconds"] = time.perf_counter() - t_critic
         keep = (informative_groups(batch, rl.n_rollouts, success_range) if rl.filter_groups
                 else torch.ones_like(batch.by_reflector))
         if rl.get("reset_optimizer"):  # each iteration's PPO from a fresh Adam (no moments from older batches)
@@ -183,6 +194,7 @@ def rl_phase(policy, optimizer, collect: Collect, n_contexts: int | None, rl, se
                                 kl_states=rl.get("kl_states", 512),
                                 direction_groups=rl.n_rollouts if rl.get("direction_check") else None)
                      if keep.any() else {})
+        stats.update(critic_stats)
         stats["update_seconds"] = time.perf_counter() - t_update
         if guard is not None and (stats.get("ppo_steps") or stats.get("bc_steps")):
             stats.update(guard(policy))

@@ -29,14 +29,20 @@ def ppo_loss(logp_new: torch.Tensor, logp_old: torch.Tensor, advantages: torch.T
     """Eq. 5: -(1 / sum_n T_n) sum_n sum_t min(r A_n, clip(r, 1 - eps, 1 + eps) A_n).
 
     logp_new, logp_old, mask: (R, T) over R rollouts; advantages (R,), broadcast over each
-    trajectory. Returns the loss and diagnostics (clip fraction, approximate KL, mean ratio)."""
+    trajectory, or (R, C) per chunk of T / C steps (a critic's, `critic.gae_advantages`). Returns
+    the loss and diagnostics (clip fraction, approximate KL, mean ratio)."""
     if not epsilon > 0:
         raise ValueError(f"PPO clip epsilon must be > 0, got {epsilon}")
     mask = mask.float()
     steps = mask.sum().clamp(min=1.0)
     log_ratio = (logp_new - logp_old) * mask
     ratio = log_ratio.exp()
-    adv = advantages[:, None].expand_as(ratio)
+    if advantages.dim() == 1:
+        adv = advantages[:, None].expand_as(ratio)
+    elif ratio.shape[1] % advantages.shape[1] == 0:
+        adv = advantages.repeat_interleave(ratio.shape[1] // advantages.shape[1], dim=1)
+    else:
+        raise ValueError(f"per-chunk advantages {tuple(advantages.shape)} do not divide the steps {tuple(ratio.shape)}")
     surrogate = torch.minimum(ratio * adv, ratio.clamp(1 - epsilon, 1 + epsilon) * adv)
     loss = -(surrogate * mask).sum() / steps
     with torch.no_grad():
@@ -62,7 +68,7 @@ class RolloutBatch:
     logp_old: torch.Tensor  # (R, C, K) behaviour log-probabilities per executed step
     mask: torch.Tensor  # (R, C, K) 1 where the rollout had not terminated before that chunk
     rewards: torch.Tensor  # (R,) R(o_{1:t_end}, g)
-    advantages: torch.Tensor  # (R,)
+    advantages: torch.Tensor  # (R,) RLOO's, one per rollout; or (R, C), one per chunk (a critic's)
     t_end: torch.Tensor  # (R,) steps taken
     by_reflector: torch.Tensor  # (R,) stopped because R > eta
     beta_mean: float
@@ -225,7 +231,7 @@ def ppo_update(policy, optimizer, batch: RolloutBatch, epochs: int, epsilon: flo
     steps, shrunk, first_kl, stopped = 0, 0, None, False
     order = [idx for _ in range(epochs) for idx in torch.randperm(r, generator=generator).split(minibatch)]
     probe = kl_probe(batch, kl_states, generator)  # drawn after the order: the minibatches are as before
-    direction = _direction_cosine(policy, batch, direction_groups, epsilon) if direction_groups else None
+    direction = direction_cosine(policy, batch, direction_groups, epsilon) if direction_groups else None
     for idx in order:
         loss, s = _rollouts_loss(policy, batch, idx, epsilon)
         stats["loss"].append(loss.item())
@@ -307,7 +313,7 @@ def gradient_signal(sum_g: torch.Tensor, sum_sq: float, groups: int) -> dict:
             "groups_for_cos_0.9": (0.81 / 0.19) / snr if snr > 0 else float("inf")}
 
 
-def _direction_cosine(policy, batch: RolloutBatch, n: int, epsilon: float) -> dict | None:
+def direction_cosine(policy, batch: RolloutBatch, n: int, epsilon: float) -> dict | None:
     """How far the batch's direction is the reward's: the cosine between the policy gradients of
     its even and its odd groups of N rollouts, and the signal and noise from each group's own
     gradient (`gradient_signal`)."""

@@ -156,7 +156,6 @@ def collect_real_rollouts(behaviour, behaviour_path: str | Path, contract: TaskC
     `RolloutBatch`: reward 1 for a success, 0 otherwise; `by_reflector` marks the successes.
     `generator`: one, or one per context (`distributed.random_rows`). `journal`: a folder keeping
     every finished rollout (`RolloutJournal`); the ones it holds already are not run again."""
-    from worldenv_core.models.laplace import laplace_log_prob
     from worldenv_core.parallel import run_jobs
 
     if n_rollouts < 2:
@@ -179,6 +178,17 @@ def collect_real_rollouts(behaviour, behaviour_path: str | Path, contract: TaskC
             book.add(jobs[r["index"]], r)
         runs.append(r)
     runs.sort(key=lambda r: r["index"])
+    return batch_from_runs(runs, behaviour, contract, lang, n_rollouts, noise_scale)
+
+
+def batch_from_runs(runs: list[dict], behaviour, contract: TaskContract, lang: torch.Tensor, n_rollouts: int,
+                    noise_scale: float = 1.0) -> RolloutBatch:
+    """The `RolloutBatch` of finished real rollouts (`real_rollout`'s results in batch order, N per
+    context; a journal's files are these): the behaviour log-probabilities in one batch, reward 1
+    for a success. `lang` (R, D): each rollout's instruction embedding."""
+    from worldenv_core.models.laplace import laplace_log_prob
+
+    chunk = contract.chunk
     n_chunks = max(1, max(len(r["actions"]) for r in runs))
     rows, size = len(runs), contract.image_size
     frames = torch.zeros(rows, n_chunks, 3, size, size, dtype=torch.uint8)
@@ -206,7 +216,7 @@ def collect_real_rollouts(behaviour, behaviour_path: str | Path, contract: TaskC
     rewards = success.float()
     return RolloutBatch(frames=frames, proprio=proprio, instruction=lang, actions=actions, logp_old=logp * mask,
                         mask=mask, rewards=rewards,
-                        advantages=rloo_advantages(rewards.view(len(starts), n_rollouts)).reshape(-1),
+                        advantages=rloo_advantages(rewards.view(-1, n_rollouts)).reshape(-1),
                         t_end=mask.sum((1, 2)).long(), by_reflector=success, beta_mean=float(betas),
                         mu_old=mu_old, beta_old=beta_old, noise_scale=float(noise_scale),
                         timing={k: sum(r["seconds"][k] for r in runs) for k in runs[0]["seconds"]} if runs else {})

@@ -18,8 +18,11 @@ pytestmark = [pytest.mark.sim, pytest.mark.slow]
 LOOP = ["expert_only=true", "rl.iterations=2", "rl.contexts_per_iteration=1", "rl.n_rollouts=2", "rl.horizon=16",
         "rl.minibatch=2", "eval.every=2", "eval.init_states=1", "eval.workers=1", "progress=false",
         "rl.filter_groups=false"]  # the tiny models' verdicts all agree: every group would be dropped
+HORIZON = "task.max_steps=48"  # real evaluations' episodes: the plumbing, not 280 steps of a policy that fails
 
-cfg = stage_cfg
+
+def cfg(stage, exp, *overrides):
+    return stage_cfg(stage, exp, *([HORIZON] if stage in ("post_train_loop", "evaluate") else []), *overrides)
 
 
 @pytest.fixture(scope="module")
@@ -358,3 +361,26 @@ def test_filtered_bc_imitates_the_successes_kept_in_the_work_dir(trained):
                             ("rl.bc_steps=0", "rl.bc_steps")):
         with pytest.raises(ConfigError, match=match):
             post_train_loop(cfg("post_train_loop", exp, *LOOP, override))
+
+
+def test_per_chunk_advantages_from_a_critic_fitted_to_the_earlier_iterations(trained):
+    """rl.advantages=gae: the first iteration keeps RLOO's advantages and fits the critic, the second
+    is weighed per chunk by it (its cross-entropy on the new batch logged before it learns that batch);
+    the critic travels in the checkpoint, so a resumed run goes on with it."""
+    import torch
+
+    exp, _ = trained
+    post_train_loop(cfg("post_train_loop", exp, *LOOP, "eval.every=0", "rl.advantages=gae", "rl.critic_steps=4",
+                        "rl.critic_minibatch=4", "rl.critic_hidden=8"))
+    rec = Manifest(exp).latest("post_train_loop", task="tiny")
+    work = Path(next(p for p in Manifest(exp).resolve(rec) if p.name == "training.json")).parent
+    steps = [h for h in json.loads((work / "training.json").read_text()) if "mean_reward" in h]
+    assert [h["critic_fits"] for h in steps] == [0, 1] and "critic_bce" not in steps[0]
+    assert steps[1]["critic_bce"] > 0 and steps[1]["critic_bce_constant"] >= 0 and steps[1]["ppo_steps"] >= 1
+    state = torch.load(work / "checkpoints" / "0000002" / "training_state.pt", weights_only=False)
+    assert state["extra"]["critic"]["fits"] == 2 and state["extra"]["critic"]["feature_dim"] > 0
+    for override, match in (("rl.advantages=td", r"rl.advantages must be one of \['rloo', 'gae'\]"),
+                            ("rl.gae_lambda=1.5", r"rl.gae_lambda must be in \[0, 1\]"),
+                            ("rl.policy_update=filtered_bc", "rl.advantages=gae weighs PPO's steps")):
+        with pytest.raises(ConfigError, match=match):
+            post_train_loop(cfg("post_train_loop", exp, *LOOP, "rl.advantages=gae", override))
