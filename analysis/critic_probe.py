@@ -47,6 +47,16 @@ def read_journal(folder: Path, n_rollouts: int) -> list[dict]:
     return [r for g in whole for r in g]
 
 
+def start_outcomes(runs: list[dict]) -> dict[str, list[int]]:
+    """Each start's [successes, rollouts] in a journal's rollouts."""
+    out: dict[str, list[int]] = {}
+    for r in runs:
+        row = out.setdefault(r["start"].key, [0, 0])
+        row[0] += int(r["error"] is None and r["first_success"] is not None)
+        row[1] += 1
+    return out
+
+
 def load_batch(folder: Path, policy_dir: Path | None, contract, encoder, n_rollouts: int, noise_scale: float):
     from worldenv_core.envs.tasks import get_task
     from worldenv_core.models.checkpoint import load_checkpoint
@@ -86,6 +96,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--outcomes", type=Path, help="also write each start's successes out of N in both journals (JSON): "
+                                                  "what a placement pool's revisits are compared with, kept small")
     args = ap.parse_args(argv)
     with user_errors():
         from worldenv_core.models.text import InstructionEncoder
@@ -98,6 +110,9 @@ def main(argv: list[str] | None = None) -> dict:
         contract, rl = task_contract(cfg), cfg.rl
         n, noise = int(rl.n_rollouts), float(rl.get("noise_scale", 1.0))
         encoder = InstructionEncoder()
+        if args.outcomes:
+            write_text_atomic(args.outcomes, json.dumps({str(f): start_outcomes(read_journal(f, n))
+                                                          for f in (args.fit, args.judge)}, indent=1))
         fit_policy, fit_batch = load_batch(args.fit, args.fit_policy, contract, encoder, n, noise)
         if args.judge.resolve() == args.fit.resolve():  # one journal: fitted to its even groups, judged on its odd ones
             group = torch.arange(len(fit_batch.rewards)) // n

@@ -64,7 +64,7 @@ RL_DEFAULTS = {"mid_episode_frames": 0, "verdicts": "own", "contexts": "episodes
                "direction_check": False, "noise_scale": 1.0, "guard_contexts": 0, "guard_rollouts": 4,
                "guard_max_hack_rate": 0.5, "policy_update": "ppo", "bc_steps": 200, "bc_minibatch": 32, "bc_augment_shift": 4,
                "placement_pool": None, "advantages": "rloo", "gae_lambda": 0.95, "critic_steps": 500,
-               "critic_minibatch": 256, "critic_lr": 1e-3, "critic_hidden": 256}
+               "critic_minibatch": 256, "critic_lr": 1e-3, "critic_hidden": 256, "critic_replay": 0}
 # top-level settings added later, kept out of the settings hash and work dir at these values
 LATER_DEFAULTS = {"contexts_to": None, "contexts_from": None, "minutes": None}
 
@@ -148,6 +148,7 @@ def validate(cfg: DictConfig) -> None:
             raise ConfigError(f"rl.gae_lambda must be in [0, 1], got {cfg.rl.gae_lambda}")
         for key in ("rl.critic_steps", "rl.critic_minibatch", "rl.critic_hidden"):
             positive_int(cfg, key)
+        positive_int(cfg, "rl.critic_replay", allow_zero=True)
         if not cfg.rl.critic_lr > 0:
             raise ConfigError(f"rl.critic_lr must be > 0, got {cfg.rl.critic_lr}")
 
@@ -213,7 +214,7 @@ def run(cfg: DictConfig) -> dict:
             rl.iterations = planned_total(work, cfg.minutes, lambda s: _time_iterations(policy, collect, src, rl, cfg, s))
         provenance = {"policy": policy_path, "worldsim": worldsim_path, "reflector": reflector_path}
         value = (ChunkValue(-(-int(rl.horizon) // contract.chunk), rl.critic_hidden, rl.critic_lr, rl.critic_steps,
-                            rl.critic_minibatch, rl.gae_lambda) if rl.advantages == "gae" else None)
+                            rl.critic_minibatch, rl.gae_lambda, rl.critic_replay) if rl.advantages == "gae" else None)
         trainer = Trainer(work, policy, {"ppo": optimizer}, model_config=read_config(policy_path)["model"],
                           meta=loop_meta(pmeta, provenance, src, key.get("contexts_from")), log_every=1, checkpoint_every=1, desc="post_train_loop", progress=cfg.progress,
                           postfix=("mean_reward", "reflector_success_rate", "approx_kl"),

@@ -44,12 +44,14 @@ def test_one_journal_is_fitted_on_its_even_groups_and_judged_on_its_odd_ones(tmp
     folder = journal(tmp_path, contract)
     out = main(["+task=tiny", "scale=tiny", "rl.n_rollouts=2", "rl.horizon=24", "--fit", str(folder), "--judge",
                 str(folder), "--steps", "20", "--minibatch", "8", "--lambdas", "1", "0.5", "--json",
-                str(tmp_path / "probe.json")])
+                str(tmp_path / "probe.json"), "--outcomes", str(tmp_path / "outcomes.json")])
     assert out["fit_rollouts"] == out["judge_rollouts"] == 4 and out["mixed_groups"] == 2
     assert [r["advantages"] for r in out["gradients"]] == ["rloo", "gae_1", "gae_0.5"]
     assert all(r["gradient_noise_sq"] > 0 for r in out["gradients"])
     assert out["judge_success"] == 0.5 and len(out["auroc_by_depth"]) == 4
     assert json.loads((tmp_path / "probe.json").read_text())["gradients"][0]["advantages"] == "rloo"
+    (outcomes,) = json.loads((tmp_path / "outcomes.json").read_text()).values()  # one journal, both roles
+    assert outcomes == {f"task0/placement{k}": [1, 2] for k in range(4)}
 
 
 def test_an_unfinished_group_is_left_out_and_too_few_or_no_policy_is_an_error(tmp_path, contract):

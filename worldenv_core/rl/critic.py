@@ -112,14 +112,20 @@ class ChunkValue:
     RLOO's), then the critic is fitted to that batch, so no batch is judged by a critic that saw its
     outcomes. Its cross-entropy on each new batch before the fit is the measure of what it knows
     (`critic_bce` against the constant predictor's, `critic_bce_constant`). Built at its first batch
-    (the width of the policy's features); `state_dict` (weights, optimizer, fits) is checkpointed
-    with the policy (the Trainer's `extra_state`)."""
+    (the width of the policy's features); `state_dict` (weights, optimizer, fits, the replay) is
+    checkpointed with the policy (the Trainer's `extra_state`). `replay` = K: the fit also sees the K
+    batches before (their chunks' features as the policy of their iteration computed them, in
+    half precision: ~6 MB a batch of 256 rollouts), a critic from more rollouts than one batch holds."""
 
-    def __init__(self, horizon_chunks: int, hidden: int, lr: float, steps: int, minibatch: int, lam: float):
+    def __init__(self, horizon_chunks: int, hidden: int, lr: float, steps: int, minibatch: int, lam: float,
+                 replay: int = 0):
         if not 0.0 <= lam <= 1.0:
             raise ValueError(f"rl.gae_lambda must be in [0, 1], got {lam}")
+        if replay < 0:
+            raise ValueError(f"rl.critic_replay must be >= 0, got {replay}")
         self.horizon_chunks, self.hidden, self.lr = int(horizon_chunks), int(hidden), float(lr)
         self.steps, self.minibatch, self.lam, self.fits = int(steps), int(minibatch), float(lam), 0
+        self.replay, self.kept = int(replay), []  # kept: (features fp16, chunk index, target) of recent batches
         self.critic: ChunkCritic | None = None
         self.optimizer: torch.optim.Optimizer | None = None
 
@@ -145,7 +151,11 @@ class ChunkValue:
             stats.update({"critic_bce": critic_bce(self.critic, feats, cc, targets),
                           "critic_bce_constant": float(F.binary_cross_entropy(torch.full_like(targets, rate), targets)),
                           "advantage_abs_mean": float(adv[live].abs().mean())})
-        stats.update(fit_critic(self.critic, self.optimizer, feats, cc, targets, self.steps, self.minibatch, generator))
+        self.kept = [*self.kept, (feats.half(), cc, targets)][-(self.replay + 1):]
+        fit_feats, fit_cc, fit_targets = (torch.cat([k[i] for k in self.kept]) for i in range(3))
+        stats.update(fit_critic(self.critic, self.optimizer, fit_feats.float(), fit_cc, fit_targets, self.steps,
+                                self.minibatch, generator))
+        stats["critic_fit_chunks"] = float(len(fit_cc))
         self.fits += 1
         return adv, stats
 
@@ -153,7 +163,7 @@ class ChunkValue:
         if self.critic is None:
             return {"fits": 0}
         return {"feature_dim": self.critic.feature_dim, "critic": self.critic.state_dict(),
-                "optimizer": self.optimizer.state_dict(), "fits": self.fits}
+                "optimizer": self.optimizer.state_dict(), "fits": self.fits, "kept": self.kept}
 
     def load_state_dict(self, state: dict, device="cpu") -> None:
         self.fits = int(state["fits"])
@@ -161,3 +171,4 @@ class ChunkValue:
             self._build(int(state["feature_dim"]), device)
             self.critic.load_state_dict(state["critic"])
             self.optimizer.load_state_dict(state["optimizer"])
+            self.kept = [tuple(t.to(device) for t in k) for k in state.get("kept", [])]

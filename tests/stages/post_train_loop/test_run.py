@@ -371,7 +371,7 @@ def test_per_chunk_advantages_from_a_critic_fitted_to_the_earlier_iterations(tra
 
     exp, _ = trained
     post_train_loop(cfg("post_train_loop", exp, *LOOP, "eval.every=0", "rl.advantages=gae", "rl.critic_steps=4",
-                        "rl.critic_minibatch=4", "rl.critic_hidden=8"))
+                        "rl.critic_minibatch=4", "rl.critic_hidden=8", "rl.critic_replay=1"))
     rec = Manifest(exp).latest("post_train_loop", task="tiny")
     work = Path(next(p for p in Manifest(exp).resolve(rec) if p.name == "training.json")).parent
     steps = [h for h in json.loads((work / "training.json").read_text()) if "mean_reward" in h]
@@ -379,8 +379,10 @@ def test_per_chunk_advantages_from_a_critic_fitted_to_the_earlier_iterations(tra
     assert steps[1]["critic_bce"] > 0 and steps[1]["critic_bce_constant"] >= 0 and steps[1]["ppo_steps"] >= 1
     state = torch.load(work / "checkpoints" / "0000002" / "training_state.pt", weights_only=False)
     assert state["extra"]["critic"]["fits"] == 2 and state["extra"]["critic"]["feature_dim"] > 0
+    assert len(state["extra"]["critic"]["kept"]) == 2  # both iterations' chunks: the replay the next fit would see
     for override, match in (("rl.advantages=td", r"rl.advantages must be one of \['rloo', 'gae'\]"),
                             ("rl.gae_lambda=1.5", r"rl.gae_lambda must be in \[0, 1\]"),
+                            ("rl.critic_replay=-1", "rl.critic_replay"),
                             ("rl.policy_update=filtered_bc", "rl.advantages=gae weighs PPO's steps")):
         with pytest.raises(ConfigError, match=match):
             post_train_loop(cfg("post_train_loop", exp, *LOOP, "rl.advantages=gae", override))

@@ -56,23 +56,28 @@ def test_a_critic_learns_what_its_features_say_about_success():
 
 def test_chunk_value_keeps_rloo_until_it_has_learned_then_gives_credit_per_chunk_and_resumes_bit_identical():
     policy, contexts, encoder = _policy_and_contexts()
-    value = ChunkValue(horizon_chunks=2, hidden=16, lr=1e-2, steps=50, minibatch=8, lam=0.9)
+    value = ChunkValue(horizon_chunks=2, hidden=16, lr=1e-2, steps=50, minibatch=8, lam=0.9, replay=1)
     first = collect_rollouts(policy, ActionRewardEnv(), contexts, 8, encoder, torch.Generator().manual_seed(0))
     adv, stats = value.advantages(policy, first, torch.Generator().manual_seed(0))
     assert adv is first.advantages and stats["critic_fits"] == 0 and value.fits == 1  # no critic yet: RLOO's
     second = collect_rollouts(policy, ActionRewardEnv(), contexts, 8, encoder, torch.Generator().manual_seed(1))
     saved = value.state_dict()
-    twin = ChunkValue(horizon_chunks=2, hidden=16, lr=1e-2, steps=50, minibatch=8, lam=0.9)
+    twin = ChunkValue(horizon_chunks=2, hidden=16, lr=1e-2, steps=50, minibatch=8, lam=0.9, replay=1)
     twin.load_state_dict(saved)
     adv, stats = value.advantages(policy, second, torch.Generator().manual_seed(1))
     again, _ = twin.advantages(policy, second, torch.Generator().manual_seed(1))  # a resumed run does the same
     assert adv.shape == (16, 2) and torch.equal(adv, again)
     assert {"critic_bce", "critic_bce_constant", "advantage_abs_mean"} <= set(stats) and value.fits == 2
+    assert stats["critic_fit_chunks"] == 2 * 32  # this batch's 16 x 2 chunks and the one before it (replay=1)
+    third = collect_rollouts(policy, ActionRewardEnv(), contexts, 8, encoder, torch.Generator().manual_seed(2))
+    assert value.advantages(policy, third)[1]["critic_fit_chunks"] == 2 * 32 and len(value.kept) == 2  # the oldest left
     out = ppo_update(policy, torch.optim.Adam(policy_param_groups(policy, 1e-3, 1e-2)),
                      dataclasses.replace(second, advantages=adv), epochs=1, epsilon=0.1, minibatch=8)
     assert out["ppo_steps"] == 2 and torch.isfinite(torch.tensor(out["loss"]))
     with pytest.raises(ValueError, match="gae_lambda"):
         ChunkValue(2, 16, 1e-2, 50, 8, lam=-0.1)
+    with pytest.raises(ValueError, match="critic_replay"):
+        ChunkValue(2, 16, 1e-2, 50, 8, lam=0.9, replay=-1)
 
 
 def test_a_tiny_loop_with_the_critics_advantages_improves_a_synthetic_reward():
