@@ -43,6 +43,7 @@ from worldenv_core.models.checkpoint import load_checkpoint, read_config
 from worldenv_core.rl.critic import ChunkValue
 from worldenv_core.rl.filtered_bc import SuccessBuffer
 from worldenv_core.rl.loop import OPTIMIZERS, check_success_range, make_optimizer
+from worldenv_core.rl.real_rollouts import retire
 from worldenv_core.rl.termination import check_eta
 from worldenv_core.stage import (ConfigError, positive_int, require_task, resolve_checkpoint, resolve_policy, resolved,
                                  start, task_contract, work_dir)
@@ -64,7 +65,8 @@ RL_DEFAULTS = {"mid_episode_frames": 0, "verdicts": "own", "contexts": "episodes
                "direction_check": False, "noise_scale": 1.0, "guard_contexts": 0, "guard_rollouts": 4,
                "guard_max_hack_rate": 0.5, "policy_update": "ppo", "bc_steps": 200, "bc_minibatch": 32, "bc_augment_shift": 4,
                "placement_pool": None, "advantages": "rloo", "gae_lambda": 0.95, "critic_steps": 500,
-               "critic_minibatch": 256, "critic_lr": 1e-3, "critic_hidden": 256, "critic_replay": 0}
+               "critic_minibatch": 256, "critic_lr": 1e-3, "critic_hidden": 256, "critic_replay": 0,
+               "keep_rollouts": False}
 # top-level settings added later, kept out of the settings hash and work dir at these values
 LATER_DEFAULTS = {"contexts_to": None, "contexts_from": None, "minutes": None}
 
@@ -230,7 +232,9 @@ def run(cfg: DictConfig) -> dict:
         trainer.fit([rl_phase(policy, optimizer, collect, src.n_contexts, rl, cfg.seed,
                               paired_guard(cfg, contract, src, encode), buffer, value)], evaluate=evaluate,
                     evaluate_every=cfg.eval.every, deadline=deadline)
-        shutil.rmtree(work / "rollout_journal", ignore_errors=True)  # every iteration it kept is checkpointed now
+        for journal in (work / "rollout_journal").glob("*"):  # every iteration it kept is checkpointed now
+            retire(journal, work / "kept_rollouts" if rl.keep_rollouts else None)
+        shutil.rmtree(work / "rollout_journal", ignore_errors=True)
         final = trainer.save_final(work / "policy", iteration=trainer.step)
         if trainer.stopped_early:
             stage.not_recorded = f"the deadline (minutes={cfg.minutes}) came at iteration {trainer.step}; the same command goes on"
@@ -250,7 +254,8 @@ def work_key(config: dict, pack_sha256: str | None) -> dict:
     later count only away from their defaults, so earlier runs keep their work dirs; a context pack
     by its content."""
     key = {k: v for k, v in config.items() if k not in ("eval", "progress")}
-    key["rl"] = {k: v for k, v in key["rl"].items() if not (k in RL_DEFAULTS and v == RL_DEFAULTS[k])}
+    key["rl"] = {k: v for k, v in key["rl"].items() if not (k in RL_DEFAULTS and v == RL_DEFAULTS[k])
+                 and k != "keep_rollouts"}  # what is kept of the rollouts is not what is trained
     return {**key, "contexts_from": pack_sha256} if pack_sha256 else key
 
 

@@ -93,13 +93,14 @@ def placements(contract) -> Callable[[int], tuple[RealStart, str]]:
 
 def real_collector(contract, starts: list[RealStart] | Callable[[int], tuple[RealStart, str]], instructions: list[str],
                    n_rollouts: int, encode, horizon: int, model_config: dict, meta: dict, folder: Path, workers,
-                   progress: bool, noise_scale: float = 1.0) -> Collect:
+                   progress: bool, noise_scale: float = 1.0, keep: Path | None = None) -> Collect:
     """Rollouts in the real simulator (`env=real`, the reference): the behaviour policy is saved
     under `folder` for the worker processes, one folder per iteration (a worker that ran the
     previous iteration must not reuse its cached weights), the previous one removed. `starts`:
     the contexts' list, or (fresh placements) a function of the context number. Every finished
     rollout is kept in `folder/rollout_journal` until the next iteration's start, so an interrupted
-    iteration resumes with the real episodes it had run."""
+    iteration resumes with the real episodes it had run; with `keep` (`rl.keep_rollouts`) each
+    finished iteration's journal is moved there with its behaviour policy instead of removed."""
     count = itertools.count()
     lookup = starts if callable(starts) else (lambda i: (starts[i], instructions[i]))
 
@@ -110,7 +111,7 @@ def real_collector(contract, starts: list[RealStart] | Callable[[int], tuple[Rea
         chosen = [lookup(i) for i in picks]
         return collect_real_rollouts(behaviour, path, contract, [st for st, _ in chosen], [i for _, i in chosen],
                                      n_rollouts, encode, horizon, gens, workers=workers, progress=progress,
-                                     noise_scale=noise_scale, journal=folder / "rollout_journal")
+                                     noise_scale=noise_scale, journal=folder / "rollout_journal", keep=keep)
     return collect
 
 
@@ -287,7 +288,8 @@ def collector(cfg: DictConfig, contract: TaskContract, src: Rollouts, encode, po
         return imagined_collector(src.env, src.contexts, rl.n_rollouts, encode, rl.noise_scale)
     starts = placements(contract) if rl.contexts == "placements" else src.starts
     return real_collector(contract, starts, src.instructions, rl.n_rollouts, encode, rl.horizon,
-                          read_config(policy_path)["model"], pmeta, work, cfg.eval.workers, cfg.progress, rl.noise_scale)
+                          read_config(policy_path)["model"], pmeta, work, cfg.eval.workers, cfg.progress, rl.noise_scale,
+                          keep=work / "kept_rollouts" if rl.get("keep_rollouts") else None)
 
 
 def pack_contexts(cfg: DictConfig, stage, contract: TaskContract, src: Rollouts, encoder) -> dict:

@@ -116,16 +116,23 @@ class RolloutJournal:
     `folder/<weights digest>/`. A rollout is taken back only for the same job: the same policy
     weights, place in the batch, seed, start, horizon and noise (a resumed iteration draws them all
     again from its seed, so they match exactly; anything else is run afresh). Opening a journal
-    removes those of other policies: the iterations before this one are finished."""
+    removes those of other policies: the iterations before this one are finished. With `keep` (a
+    folder) they are moved there instead, each beside a copy of its behaviour policy
+    (`<digest>_behaviour`): every rollout a run paid for, for analyses that refit on them
+    (`analysis.critic_probe`)."""
 
-    def __init__(self, folder: str | Path, behaviour_path: str | Path):
+    def __init__(self, folder: str | Path, behaviour_path: str | Path, keep: str | Path | None = None):
         folder = Path(folder)
         digest = sha256_file(Path(behaviour_path) / "model.safetensors")[:16]
         for old in folder.glob("*"):
             if old.name != digest:
-                shutil.rmtree(old, ignore_errors=True)
+                retire(old, keep)
         self.folder = folder / digest
         self.folder.mkdir(parents=True, exist_ok=True)
+        if keep is not None and not (kept := Path(keep) / f"{digest}_behaviour").exists():
+            kept.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copytree(behaviour_path, kept.with_name(kept.name + ".tmp"), dirs_exist_ok=True)
+            kept.with_name(kept.name + ".tmp").rename(kept)
 
     @staticmethod
     def _job_key(job: RealRolloutJob) -> tuple:
@@ -146,16 +153,31 @@ class RolloutJournal:
         write_bytes_atomic(self._path(job), zlib.compress(pickle.dumps((self._job_key(job), result)), 1))
 
 
+def retire(journal: Path, keep: str | Path | None) -> None:
+    """A finished iteration's journal folder: removed, or moved into `keep`."""
+    if keep is None:
+        shutil.rmtree(journal, ignore_errors=True)
+        return
+    Path(keep).mkdir(parents=True, exist_ok=True)
+    target = Path(keep) / journal.name
+    if target.exists():  # a resumed run that finished this iteration before: the same rollouts
+        shutil.rmtree(journal, ignore_errors=True)
+    else:
+        shutil.move(str(journal), str(target))
+
+
 def collect_real_rollouts(behaviour, behaviour_path: str | Path, contract: TaskContract, starts: list[RealStart],
                           instructions: list[str], n_rollouts: int, encoder, horizon: int,
                           generator: torch.Generator | list[torch.Generator], workers: int | None = None, launcher: str = "local",
                           ray_address: str | None = None, progress: bool = False,
-                          noise_scale: float = 1.0, journal: str | Path | None = None) -> RolloutBatch:
+                          noise_scale: float = 1.0, journal: str | Path | None = None,
+                          keep: str | Path | None = None) -> RolloutBatch:
     """N real rollouts per context (context-major, as `collect_rollouts` draws them) by the
     behaviour policy saved at `behaviour_path` (whose weights are `behaviour`'s), as a
     `RolloutBatch`: reward 1 for a success, 0 otherwise; `by_reflector` marks the successes.
     `generator`: one, or one per context (`distributed.random_rows`). `journal`: a folder keeping
-    every finished rollout (`RolloutJournal`); the ones it holds already are not run again."""
+    every finished rollout (`RolloutJournal`); the ones it holds already are not run again; `keep`:
+    where finished iterations' journals go instead of being removed."""
     from worldenv_core.parallel import run_jobs
 
     if n_rollouts < 2:
@@ -167,7 +189,7 @@ def collect_real_rollouts(behaviour, behaviour_path: str | Path, contract: TaskC
     lang = encoder([instructions[i // n_rollouts] for i in range(len(seeds))]).float().cpu()
     jobs = [RealRolloutJob(contract, starts[i // n_rollouts], str(behaviour_path), s, lang[i].numpy(), horizon, noise_scale,
                            index=i) for i, s in enumerate(seeds)]
-    book = RolloutJournal(journal, behaviour_path) if journal is not None else None
+    book = RolloutJournal(journal, behaviour_path, keep) if journal is not None else None
     runs = [r for r in (book.get(j) for j in jobs) if r is not None] if book else []
     kept = {r["index"] for r in runs}
     todo = [j for j in jobs if j.index not in kept]

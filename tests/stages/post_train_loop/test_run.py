@@ -214,8 +214,14 @@ def test_the_real_route_from_fresh_placements_with_a_validation_set_and_a_trust_
     with pytest.raises(ConfigError, match="placement_pool .* with rl.contexts=episodes"):
         post_train_loop(cfg("post_train_loop", exp, *LOOP, "env=real", "rl.placement_pool=10"))
     pooled = post_train_loop(cfg("post_train_loop", exp, *LOOP, "env=real", "rl.contexts=placements", "rl.iterations=1",
-                                 "eval.every=0", "rl.placement_pool=3"))
+                                 "eval.every=0", "rl.placement_pool=3", "rl.keep_rollouts=true"))
     assert pooled["contexts"] == 3 and pooled["train_real_episodes"] == 2
+    # rl.keep_rollouts: the iteration's rollouts kept beside its behaviour policy, for analysis.critic_probe
+    work = Path(next(p for p in Manifest(exp).resolve(Manifest(exp).latest("post_train_loop", task="tiny", env="real"))
+                     if p.name == "training.json")).parent
+    (kept,) = [p for p in (work / "kept_rollouts").iterdir() if not p.name.endswith("_behaviour")]
+    assert len(list(kept.glob("*.rollout"))) == 2 and (kept.parent / f"{kept.name}_behaviour" / "model.safetensors").exists()
+    assert not (work / "rollout_journal").exists()
 
 
 def test_rollouts_start_part_way_through_the_collected_episodes(trained):

@@ -108,3 +108,27 @@ def test_an_interrupted_collection_resumes_with_the_rollouts_it_had_finished(dem
     ran.clear()
     collect(seed=1)  # other seeds: other rollouts, none taken from the journal
     assert sorted(ran) == [0, 1, 2, 3]
+
+
+def test_a_kept_journal_moves_finished_iterations_beside_their_behaviour_policy(tmp_path):
+    """RolloutJournal(keep=...): the iterations before this one are moved into `keep` instead of
+    removed, and this iteration's behaviour policy is copied there once (`<digest>_behaviour`)."""
+    from worldenv_core.manifest import sha256_file
+    from worldenv_core.rl.real_rollouts import RolloutJournal, retire
+
+    saved = save_model(tmp_path / "behaviour", tiny_policy(), POLICY_CONFIG, {"kind": "policy"})
+    digest = sha256_file(saved / "model.safetensors")[:16]
+    journal, kept = tmp_path / "journal", tmp_path / "kept"
+    (journal / "0123456789abcdef").mkdir(parents=True)
+    (journal / "0123456789abcdef" / "00000.rollout").write_bytes(b"an older iteration's rollout")
+    book = RolloutJournal(journal, saved, keep=kept)
+    assert [p.name for p in journal.iterdir()] == [digest] and book.folder == journal / digest
+    assert (kept / "0123456789abcdef" / "00000.rollout").read_bytes() == b"an older iteration's rollout"
+    assert (kept / f"{digest}_behaviour" / "model.safetensors").exists() and not list(kept.glob("*.tmp"))
+    retire(book.folder, kept)  # the run's end: this iteration's rollouts join the others
+    assert sorted(p.name for p in kept.iterdir()) == sorted(["0123456789abcdef", digest, f"{digest}_behaviour"])
+    (journal / digest).mkdir()
+    retire(journal / digest, kept)  # a resumed run's copy of an iteration already kept: removed, the kept one stays
+    assert not (journal / digest).exists() and (kept / digest).exists()
+    RolloutJournal(journal, saved)  # without keep, as before: the older iterations are removed
+    assert (journal / digest).exists()
