@@ -101,7 +101,8 @@ def main(argv: list[str] | None = None) -> dict:
     args = ap.parse_args(argv)
     with user_errors():
         from worldenv_core.models.text import InstructionEncoder
-        from worldenv_core.rl.critic import ChunkCritic, chunk_features, chunk_values, critic_bce, fit_critic, gae_advantages
+        from worldenv_core.rl.critic import (ChunkCritic, chunk_features, chunk_values, constant_bce, critic_bce, fit_critic,
+                                             gae_advantages)
         from worldenv_core.rl.loop import direction_cosine, informative_groups, select
         from worldenv_core.stage import compose_config, task_contract
 
@@ -127,8 +128,7 @@ def main(argv: list[str] | None = None) -> dict:
         g = torch.Generator().manual_seed(args.seed)
         fitted = fit_critic(critic, opt, f_fit, cc_fit, fit_batch.rewards[rr_fit], args.steps, args.minibatch, g)
         targets = judge_batch.rewards[rr_judge]
-        rate = float(targets.mean())
-        constant = float(torch.nn.functional.binary_cross_entropy(torch.full_like(targets, rate), targets))
+        constant = constant_bce(targets)
         live = judge_batch.mask[:, :, 0] > 0
         values = chunk_values(critic, f_judge, rr_judge, cc_judge, tuple(live.shape))
         keep = informative_groups(judge_batch, n, None)

@@ -65,8 +65,7 @@ RL_DEFAULTS = {"mid_episode_frames": 0, "verdicts": "own", "contexts": "episodes
                "direction_check": False, "noise_scale": 1.0, "guard_contexts": 0, "guard_rollouts": 4,
                "guard_max_hack_rate": 0.5, "policy_update": "ppo", "bc_steps": 200, "bc_minibatch": 32, "bc_augment_shift": 4,
                "placement_pool": None, "advantages": "rloo", "gae_lambda": 0.95, "critic_steps": 500,
-               "critic_minibatch": 256, "critic_lr": 1e-3, "critic_hidden": 256, "critic_replay": 0,
-               "keep_rollouts": False}
+               "critic_minibatch": 256, "critic_lr": 1e-3, "critic_hidden": 256, "critic_replay": 0}
 # top-level settings added later, kept out of the settings hash and work dir at these values
 LATER_DEFAULTS = {"contexts_to": None, "contexts_from": None, "minutes": None}
 

@@ -106,6 +106,12 @@ def critic_bce(critic: ChunkCritic, feats: torch.Tensor, cc: torch.Tensor, targe
     return float(F.binary_cross_entropy_with_logits(critic(feats, cc), targets)) if len(cc) else float("nan")
 
 
+def constant_bce(targets: torch.Tensor) -> float:
+    """The cross-entropy of always predicting the success rate: what a critic must beat."""
+    rate = min(max(float(targets.mean()), 1e-6), 1 - 1e-6)
+    return float(F.binary_cross_entropy(torch.full_like(targets, rate), targets))
+
+
 class ChunkValue:
     """The stage's critic (`rl.advantages=gae`): each iteration's batch gets per-chunk advantages
     from what the critic learned of the batches before it (the first batch, before any fit, keeps
@@ -147,9 +153,8 @@ class ChunkValue:
         if self.fits:
             values = chunk_values(self.critic, feats, rr, cc, tuple(live.shape))
             adv = gae_advantages(values, live, batch.rewards.float(), self.lam)
-            rate = min(max(float(targets.mean()), 1e-6), 1 - 1e-6)
             stats.update({"critic_bce": critic_bce(self.critic, feats, cc, targets),
-                          "critic_bce_constant": float(F.binary_cross_entropy(torch.full_like(targets, rate), targets)),
+                          "critic_bce_constant": constant_bce(targets),
                           "advantage_abs_mean": float(adv[live].abs().mean())})
         self.kept = [*self.kept, (feats.half(), cc, targets)][-(self.replay + 1):]
         fit_feats, fit_cc, fit_targets = (torch.cat([k[i] for k in self.kept]) for i in range(3))
