@@ -57,7 +57,8 @@ def start_outcomes(runs: list[dict]) -> dict[str, list[int]]:
     return out
 
 
-def load_batch(folder: Path, policy_dir: Path | None, contract, encoder, n_rollouts: int, noise_scale: float):
+def load_batch(folder: Path, policy_dir: Path | None, contract, encoder, n_rollouts: int, noise_scale: float,
+               exploration: str = "step"):
     from worldenv_core.envs.tasks import get_task
     from worldenv_core.models.checkpoint import load_checkpoint
     from worldenv_core.rl.real_rollouts import batch_from_runs
@@ -68,7 +69,7 @@ def load_batch(folder: Path, policy_dir: Path | None, contract, encoder, n_rollo
     policy = load_checkpoint(policy_dir, "policy", contract)[0].eval()
     runs = read_journal(folder, n_rollouts)
     lang = encoder([get_task(contract.suite, r["start"].task_id).instruction for r in runs]).float().cpu()
-    return policy, batch_from_runs(runs, policy, contract, lang, n_rollouts, noise_scale)
+    return policy, batch_from_runs(runs, policy, contract, lang, n_rollouts, noise_scale, exploration)
 
 
 def by_depth(values, targets, cc, horizon_chunks: int, bins: int = 4) -> list[dict]:
@@ -109,17 +110,17 @@ def main(argv: list[str] | None = None) -> dict:
         torch.manual_seed(args.seed)
         cfg = compose_config("post_train_loop", ["scale=small", *args.overrides])
         contract, rl = task_contract(cfg), cfg.rl
-        n, noise = int(rl.n_rollouts), float(rl.get("noise_scale", 1.0))
+        n, noise = int(rl.n_rollouts), (float(rl.get("noise_scale", 1.0)), rl.get("exploration", "step"))
         encoder = InstructionEncoder()
         if args.outcomes:
             write_text_atomic(args.outcomes, json.dumps({str(f): start_outcomes(read_journal(f, n))
                                                           for f in (args.fit, args.judge)}, indent=1))
-        fit_policy, fit_batch = load_batch(args.fit, args.fit_policy, contract, encoder, n, noise)
+        fit_policy, fit_batch = load_batch(args.fit, args.fit_policy, contract, encoder, n, *noise)
         if args.judge.resolve() == args.fit.resolve():  # one journal: fitted to its even groups, judged on its odd ones
             group = torch.arange(len(fit_batch.rewards)) // n
             judge_policy, judge_batch, fit_batch = fit_policy, select(fit_batch, group % 2 == 1), select(fit_batch, group % 2 == 0)
         else:
-            judge_policy, judge_batch = load_batch(args.judge, args.judge_policy, contract, encoder, n, noise)
+            judge_policy, judge_batch = load_batch(args.judge, args.judge_policy, contract, encoder, n, *noise)
         horizon_chunks = -(-int(rl.horizon) // contract.chunk)
         f_fit, rr_fit, cc_fit = chunk_features(fit_policy, fit_batch)
         f_judge, rr_judge, cc_judge = chunk_features(judge_policy, judge_batch)

@@ -40,6 +40,7 @@ from worldenv_core.data.selection import collected_episodes
 from worldenv_core.imagination.context_pack import read_context_pack
 from worldenv_core.manifest import StageRun
 from worldenv_core.models.checkpoint import load_checkpoint, read_config
+from worldenv_core.models.laplace import EXPLORATION
 from worldenv_core.rl.critic import ChunkValue
 from worldenv_core.rl.filtered_bc import SuccessBuffer
 from worldenv_core.rl.loop import OPTIMIZERS, check_success_range, make_optimizer
@@ -65,7 +66,8 @@ RL_DEFAULTS = {"mid_episode_frames": 0, "verdicts": "own", "contexts": "episodes
                "direction_check": False, "noise_scale": 1.0, "guard_contexts": 0, "guard_rollouts": 4,
                "guard_max_hack_rate": 0.5, "policy_update": "ppo", "bc_steps": 200, "bc_minibatch": 32, "bc_augment_shift": 4,
                "placement_pool": None, "advantages": "rloo", "gae_lambda": 0.95, "critic_steps": 500,
-               "critic_minibatch": 256, "critic_lr": 1e-3, "critic_hidden": 256, "critic_replay": 0}
+               "critic_minibatch": 256, "critic_lr": 1e-3, "critic_hidden": 256, "critic_replay": 0,
+               "exploration": "step"}
 # top-level settings added later, kept out of the settings hash and work dir at these values
 LATER_DEFAULTS = {"contexts_to": None, "contexts_from": None, "minutes": None}
 
@@ -107,6 +109,9 @@ def validate(cfg: DictConfig) -> None:
                           f"them > 0, got {cfg.rl.lr_backbone} and {cfg.rl.lr_heads}")
     if cfg.rl.max_kl is not None and not cfg.rl.max_kl > 0:
         raise ConfigError(f"rl.max_kl (the trust region) must be > 0 or null (none), got {cfg.rl.max_kl}")
+    if cfg.rl.exploration not in EXPLORATION:
+        raise ConfigError(f"rl.exploration must be one of {', '.join(EXPLORATION)} (a Laplace draw per step or per "
+                          f"chunk), got {cfg.rl.exploration!r}")
     if not cfg.rl.noise_scale > 0:
         raise ConfigError(f"rl.noise_scale (the rollouts' sampling temperature) must be > 0, got {cfg.rl.noise_scale}")
     if cfg.rl.optimizer not in OPTIMIZERS:

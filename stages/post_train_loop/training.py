@@ -68,10 +68,13 @@ def real_starts(paths: list[Path], mid_frames: int = 0) -> tuple[list[RealStart]
     return [st for st, _ in pairs], [i for _, i in pairs]
 
 
-def imagined_collector(env, contexts: list[Context], n_rollouts: int, encode, noise_scale: float = 1.0) -> Collect:
-    """Rollouts in the imagined environment (the method), actions drawn at `rl.noise_scale`."""
+def imagined_collector(env, contexts: list[Context], n_rollouts: int, encode, noise_scale: float = 1.0,
+                       exploration: str = "step") -> Collect:
+    """Rollouts in the imagined environment (the method), actions drawn at `rl.noise_scale`, a draw
+    per step or per chunk (`rl.exploration`)."""
     return lambda behaviour, picks, gens: collect_rollouts(behaviour, env, [contexts[i] for i in picks], n_rollouts,
-                                                           encode, generator=gens, noise_scale=noise_scale)
+                                                           encode, generator=gens, noise_scale=noise_scale,
+                                                           exploration=exploration)
 
 
 def placements(contract) -> Callable[[int], tuple[RealStart, str]]:
@@ -93,7 +96,7 @@ def placements(contract) -> Callable[[int], tuple[RealStart, str]]:
 
 def real_collector(contract, starts: list[RealStart] | Callable[[int], tuple[RealStart, str]], instructions: list[str],
                    n_rollouts: int, encode, horizon: int, model_config: dict, meta: dict, folder: Path, workers,
-                   progress: bool, noise_scale: float = 1.0, keep: Path | None = None) -> Collect:
+                   progress: bool, noise_scale: float = 1.0, keep: Path | None = None, exploration: str = "step") -> Collect:
     """Rollouts in the real simulator (`env=real`, the reference): the behaviour policy is saved
     under `folder` for the worker processes, one folder per iteration (a worker that ran the
     previous iteration must not reuse its cached weights), the previous one removed. `starts`:
@@ -111,7 +114,8 @@ def real_collector(contract, starts: list[RealStart] | Callable[[int], tuple[Rea
         chosen = [lookup(i) for i in picks]
         return collect_real_rollouts(behaviour, path, contract, [st for st, _ in chosen], [i for _, i in chosen],
                                      n_rollouts, encode, horizon, gens, workers=workers, progress=progress,
-                                     noise_scale=noise_scale, journal=folder / "rollout_journal", keep=keep)
+                                     noise_scale=noise_scale, journal=folder / "rollout_journal", keep=keep,
+                                     exploration=exploration)
     return collect
 
 
@@ -285,11 +289,11 @@ def collector(cfg: DictConfig, contract: TaskContract, src: Rollouts, encode, po
     """How an iteration draws its rollouts: in imagination, or as real episodes (counted)."""
     rl = cfg.rl
     if cfg.env != "real":
-        return imagined_collector(src.env, src.contexts, rl.n_rollouts, encode, rl.noise_scale)
+        return imagined_collector(src.env, src.contexts, rl.n_rollouts, encode, rl.noise_scale, rl.exploration)
     starts = placements(contract) if rl.contexts == "placements" else src.starts
     return real_collector(contract, starts, src.instructions, rl.n_rollouts, encode, rl.horizon,
                           read_config(policy_path)["model"], pmeta, work, cfg.eval.workers, cfg.progress, rl.noise_scale,
-                          keep=work / "kept_rollouts" if rl.get("keep_rollouts") else None)
+                          keep=work / "kept_rollouts" if rl.get("keep_rollouts") else None, exploration=rl.exploration)
 
 
 def pack_contexts(cfg: DictConfig, stage, contract: TaskContract, src: Rollouts, encoder) -> dict:

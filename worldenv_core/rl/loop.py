@@ -77,20 +77,22 @@ class RolloutBatch:
     beta_old: torch.Tensor | None = None
     timing: dict = field(default_factory=dict)  # seconds by part (physics, render, policy, ...), summed over rollouts
     noise_scale: float = 1.0  # the actions were drawn from Laplace(mu, noise_scale * e^beta): log-probs are of that
+    exploration: str = "step"  # a draw per step, or one per chunk held for its K steps (`laplace.chunk_log_prob`)
 
 
 @torch.no_grad()
 def collect_rollouts(policy, env, contexts: list, n_rollouts: int, encoder,
                      generator: torch.Generator | list[torch.Generator] | None = None, observer=None,
-                     noise_scale: float = 1.0) -> RolloutBatch:
+                     noise_scale: float = 1.0, exploration: str = "step") -> RolloutBatch:
     """N rollouts per context from the frozen behaviour policy (Algorithm 1, lines 5-25): actions
     ~ Laplace(mu, exp(beta)); all C x N rollouts advance together until every one is done.
     `generator`: one for the batch, or one per context, whose N rollouts then draw from it alone
     (the same rollouts whichever other contexts share the batch: sharding over ranks).
     `observer` (e.g. `ImaginedRecorder`) sees the reset state and every step: `on_reset(state)`,
     `on_step(actions, mu, beta, state)` with actions and mu in the simulator's units. `noise_scale`
-    multiplies the Laplace scale (1: the policy's own; evaluating a noisier or calmer variant)."""
-    from worldenv_core.models.laplace import laplace_log_prob, laplace_sample
+    multiplies the Laplace scale (1: the policy's own; evaluating a noisier or calmer variant);
+    `exploration` (`laplace.laplace_sample`): a draw per step, or one per chunk."""
+    from worldenv_core.models.laplace import chunk_log_prob, laplace_sample
 
     if n_rollouts < 2:
         raise ValueError(f"RLOO needs at least 2 rollouts per context, got N={n_rollouts}")
@@ -104,10 +106,10 @@ def collect_rollouts(policy, env, contexts: list, n_rollouts: int, encoder,
     frames, proprio, actions, logps, masks, betas, mus, betas_all = [], [], [], [], [], [], [], []
     while not state.done.all():
         mu, beta = policy({camera: state.frames}, state.proprio, lang)
-        a = laplace_sample(mu, beta, generator, noise_scale)
+        a = laplace_sample(mu, beta, generator, noise_scale, exploration)
         frames.append(state.frames), proprio.append(state.proprio), actions.append(a)
         mus.append(mu), betas_all.append(beta)
-        logps.append(laplace_log_prob(a, mu, beta + math.log(noise_scale)))  # (R, K): per executed step, as drawn
+        logps.append(chunk_log_prob(a, mu, beta, noise_scale, exploration))  # (R, K): per executed step, as drawn
         masks.append((~state.done).float()[:, None].expand(-1, a.shape[1]))
         betas.append(beta[~state.done].mean())
         state = env.step(policy.unnormalize_actions(a), generator=generator)
@@ -119,7 +121,7 @@ def collect_rollouts(policy, env, contexts: list, n_rollouts: int, encoder,
                         actions=torch.stack(actions, 1), logp_old=torch.stack(logps, 1), mask=torch.stack(masks, 1),
                         rewards=rewards, advantages=advantages, t_end=state.t, by_reflector=state.by_reflector,
                         beta_mean=float(torch.stack(betas).mean()), mu_old=torch.stack(mus, 1),
-                        beta_old=torch.stack(betas_all, 1), noise_scale=float(noise_scale))
+                        beta_old=torch.stack(betas_all, 1), noise_scale=float(noise_scale), exploration=exploration)
 
 
 def merge(parts: list[RolloutBatch]) -> RolloutBatch:
@@ -140,7 +142,8 @@ def merge(parts: list[RolloutBatch]) -> RolloutBatch:
                         t_end=torch.cat([p.t_end for p in parts]), by_reflector=torch.cat([p.by_reflector for p in parts]),
                         beta_mean=sum(p.beta_mean * k for p, k in zip(parts, n)) / sum(n),
                         mu_old=cat("mu_old") if behaviour else None, beta_old=cat("beta_old") if behaviour else None,
-                        timing=timing, noise_scale=parts[0].noise_scale)
+                        timing=timing, noise_scale=parts[0].noise_scale,
+                        exploration=parts[0].exploration)
 
 
 def _pad_chunks(x: torch.Tensor, chunks: int) -> torch.Tensor:
@@ -274,15 +277,15 @@ def ppo_update(policy, optimizer, batch: RolloutBatch, epochs: int, epsilon: flo
 
 def _rollouts_loss(policy, batch: RolloutBatch, rows: torch.Tensor, epsilon: float) -> tuple[torch.Tensor, dict]:
     """Eq. 5 over the rollouts `rows`: the policy on the chunks they really took, log-probs of the
-    distribution the actions were drawn from (`noise_scale`)."""
-    from worldenv_core.models.laplace import laplace_log_prob
+    distribution the actions were drawn from (`noise_scale`, `exploration`)."""
+    from worldenv_core.models.laplace import chunk_log_prob
 
     live = batch.mask[rows, :, 0] > 0  # (m, C): chunks the rollout really took
     rr, cc = live.nonzero(as_tuple=True)
     mu, beta = policy({policy.cameras[0]: batch.frames[rows][rr, cc]}, batch.proprio[rows][rr, cc],
                       batch.instruction[rows][rr])
     logp = torch.zeros_like(batch.logp_old[rows])
-    logp[rr, cc] = laplace_log_prob(batch.actions[rows][rr, cc], mu, beta + math.log(batch.noise_scale))
+    logp[rr, cc] = chunk_log_prob(batch.actions[rows][rr, cc], mu, beta, batch.noise_scale, batch.exploration)
     return ppo_loss(logp.flatten(1), batch.logp_old[rows].flatten(1), batch.advantages[rows],
                     batch.mask[rows].flatten(1), epsilon)
 

@@ -20,7 +20,6 @@ the resource this route spends, and an iteration of 256 of them is most of an ho
 from __future__ import annotations
 
 import functools
-import math
 import pickle
 import shutil
 import time
@@ -50,6 +49,7 @@ class RealRolloutJob:
     horizon: int  # steps, rounded up to whole chunks (as the imagined env does)
     noise_scale: float = 1.0
     index: int = 0  # its place in the batch
+    exploration: str = "step"  # a Laplace draw per step, or one per chunk (`laplace.laplace_sample`)
 
 
 @functools.lru_cache(maxsize=1)
@@ -93,7 +93,7 @@ def real_rollout(job: RealRolloutJob) -> dict:
             image = timed("render", env.render, [camera])[camera]
             mu, beta = timed("policy", policy, {camera: torch.from_numpy(image).permute(2, 0, 1)[None]},
                              torch.as_tensor(frame.proprio, dtype=torch.float32)[None], lang)
-            a = laplace_sample(mu, beta, g, job.noise_scale)
+            a = laplace_sample(mu, beta, g, job.noise_scale, job.exploration)
             frames.append(image), proprio.append(frame.proprio.astype(np.float32)), chunks.append(a[0].numpy())
             n = 0
             for action in policy.unnormalize_actions(a)[0].numpy():
@@ -136,7 +136,8 @@ class RolloutJournal:
 
     @staticmethod
     def _job_key(job: RealRolloutJob) -> tuple:
-        return job.index, job.seed, job.start.key, job.horizon, job.noise_scale
+        key = job.index, job.seed, job.start.key, job.horizon, job.noise_scale
+        return key if job.exploration == "step" else (*key, job.exploration)  # journals from before it still match
 
     def _path(self, job: RealRolloutJob) -> Path:
         return self.folder / f"{job.index:05d}.rollout"
@@ -171,13 +172,14 @@ def collect_real_rollouts(behaviour, behaviour_path: str | Path, contract: TaskC
                           generator: torch.Generator | list[torch.Generator], workers: int | None = None, launcher: str = "local",
                           ray_address: str | None = None, progress: bool = False,
                           noise_scale: float = 1.0, journal: str | Path | None = None,
-                          keep: str | Path | None = None) -> RolloutBatch:
+                          keep: str | Path | None = None, exploration: str = "step") -> RolloutBatch:
     """N real rollouts per context (context-major, as `collect_rollouts` draws them) by the
     behaviour policy saved at `behaviour_path` (whose weights are `behaviour`'s), as a
     `RolloutBatch`: reward 1 for a success, 0 otherwise; `by_reflector` marks the successes.
     `generator`: one, or one per context (`distributed.random_rows`). `journal`: a folder keeping
     every finished rollout (`RolloutJournal`); the ones it holds already are not run again; `keep`:
-    where finished iterations' journals go instead of being removed."""
+    where finished iterations' journals go instead of being removed; `exploration`: a draw per step
+    or per chunk."""
     from worldenv_core.parallel import run_jobs
 
     if n_rollouts < 2:
@@ -188,7 +190,7 @@ def collect_real_rollouts(behaviour, behaviour_path: str | Path, contract: TaskC
                         (len(starts) * n_rollouts,), generator).tolist()
     lang = encoder([instructions[i // n_rollouts] for i in range(len(seeds))]).float().cpu()
     jobs = [RealRolloutJob(contract, starts[i // n_rollouts], str(behaviour_path), s, lang[i].numpy(), horizon, noise_scale,
-                           index=i) for i, s in enumerate(seeds)]
+                           index=i, exploration=exploration) for i, s in enumerate(seeds)]
     book = RolloutJournal(journal, behaviour_path, keep) if journal is not None else None
     runs = [r for r in (book.get(j) for j in jobs) if r is not None] if book else []
     kept = {r["index"] for r in runs}
@@ -200,15 +202,15 @@ def collect_real_rollouts(behaviour, behaviour_path: str | Path, contract: TaskC
             book.add(jobs[r["index"]], r)
         runs.append(r)
     runs.sort(key=lambda r: r["index"])
-    return batch_from_runs(runs, behaviour, contract, lang, n_rollouts, noise_scale)
+    return batch_from_runs(runs, behaviour, contract, lang, n_rollouts, noise_scale, exploration)
 
 
 def batch_from_runs(runs: list[dict], behaviour, contract: TaskContract, lang: torch.Tensor, n_rollouts: int,
-                    noise_scale: float = 1.0) -> RolloutBatch:
+                    noise_scale: float = 1.0, exploration: str = "step") -> RolloutBatch:
     """The `RolloutBatch` of finished real rollouts (`real_rollout`'s results in batch order, N per
     context; a journal's files are these): the behaviour log-probabilities in one batch, reward 1
     for a success. `lang` (R, D): each rollout's instruction embedding."""
-    from worldenv_core.models.laplace import laplace_log_prob
+    from worldenv_core.models.laplace import chunk_log_prob
 
     chunk = contract.chunk
     n_chunks = max(1, max(len(r["actions"]) for r in runs))
@@ -230,7 +232,7 @@ def batch_from_runs(runs: list[dict], behaviour, contract: TaskContract, lang: t
     with torch.no_grad():
         camera = behaviour.cameras[0]
         mu, beta = behaviour.eval()({camera: frames[rr, cc]}, proprio[rr, cc], lang[rr])
-        logp[rr, cc] = laplace_log_prob(actions[rr, cc], mu, beta + math.log(noise_scale))  # as the actions were drawn
+        logp[rr, cc] = chunk_log_prob(actions[rr, cc], mu, beta, noise_scale, exploration)  # as the actions were drawn
         betas = beta.mean() if len(rr) else torch.tensor(float("nan"))
         mu_old, beta_old = torch.zeros_like(actions), torch.zeros_like(actions)
         mu_old[rr, cc], beta_old[rr, cc] = mu, beta
@@ -240,5 +242,5 @@ def batch_from_runs(runs: list[dict], behaviour, contract: TaskContract, lang: t
                         mask=mask, rewards=rewards,
                         advantages=rloo_advantages(rewards.view(-1, n_rollouts)).reshape(-1),
                         t_end=mask.sum((1, 2)).long(), by_reflector=success, beta_mean=float(betas),
-                        mu_old=mu_old, beta_old=beta_old, noise_scale=float(noise_scale),
+                        mu_old=mu_old, beta_old=beta_old, noise_scale=float(noise_scale), exploration=exploration,
                         timing={k: sum(r["seconds"][k] for r in runs) for k in runs[0]["seconds"]} if runs else {})

@@ -1,6 +1,8 @@
 """post_train_loop on the tiny task: SFT policy, world simulator and reflector from the manifest,
 LOOP iterations in imagination, real-simulator evaluation, resume, and bad settings."""
 import json
+import pickle
+import zlib
 from pathlib import Path
 
 import pytest
@@ -206,7 +208,8 @@ def test_the_real_route_from_fresh_placements_with_a_validation_set_and_a_trust_
                             ("rl.group_success=[0.9,0.1]", "rl.group_success: .*two fractions"),
                             ("rl.max_kl=0", "max_kl .* must be > 0"), ("rl.optimizer=rmsprop", "rl.optimizer must be"),
                             ("rl.lr_heads=0", "one of them > 0"),
-                            ("rl.placement_pool=0", "placement_pool is a number of fixed fresh placements")):
+                            ("rl.placement_pool=0", "placement_pool is a number of fixed fresh placements"),
+                            ("rl.exploration=episode", "rl.exploration must be one of step, chunk")):
         with pytest.raises(ConfigError, match=match):
             post_train_loop(cfg("post_train_loop", exp, *LOOP, "env=real", "rl.lr_backbone=0", override))
     with pytest.raises(ConfigError, match="placements .* needs env=real"):
@@ -214,13 +217,16 @@ def test_the_real_route_from_fresh_placements_with_a_validation_set_and_a_trust_
     with pytest.raises(ConfigError, match="placement_pool .* with rl.contexts=episodes"):
         post_train_loop(cfg("post_train_loop", exp, *LOOP, "env=real", "rl.placement_pool=10"))
     pooled = post_train_loop(cfg("post_train_loop", exp, *LOOP, "env=real", "rl.contexts=placements", "rl.iterations=1",
-                                 "eval.every=0", "rl.placement_pool=3", "rl.keep_rollouts=true"))
+                                 "eval.every=0", "rl.placement_pool=3", "rl.keep_rollouts=true", "rl.exploration=chunk"))
     assert pooled["contexts"] == 3 and pooled["train_real_episodes"] == 2
     # rl.keep_rollouts: the iteration's rollouts kept beside its behaviour policy, for analysis.critic_probe
     work = Path(next(p for p in Manifest(exp).resolve(Manifest(exp).latest("post_train_loop", task="tiny", env="real"))
                      if p.name == "training.json")).parent
     (kept,) = [p for p in (work / "kept_rollouts").iterdir() if not p.name.endswith("_behaviour")]
     assert len(list(kept.glob("*.rollout"))) == 2 and (kept.parent / f"{kept.name}_behaviour" / "model.safetensors").exists()
+    # rl.exploration=chunk reached the real rollouts' jobs (the held draw itself: tests/worldenv_core/models/test_laplace.py)
+    key, _ = pickle.loads(zlib.decompress(next(kept.glob("*.rollout")).read_bytes()))
+    assert key[-1] == "chunk"
     assert not (work / "rollout_journal").exists()
 
 

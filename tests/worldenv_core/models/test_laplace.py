@@ -43,3 +43,44 @@ def test_kl_in_closed_form_matches_a_monte_carlo_estimate_and_vanishes_only_at_e
                           atol=1e-5)
     assert torch.allclose(laplace_kl(mu_p, beta_p, mu_p, beta_p), torch.zeros(3), atol=1e-7)
     assert (exact > 0).all()
+
+
+def test_a_chunk_held_draw_is_one_laplace_offset_per_dimension_in_units_of_each_steps_scale():
+    """exploration=chunk: a_k = mu_k + s e^beta_k eta with one standard Laplace eta per chunk and
+    action dimension; its log-probability is eta's density (less the scales' mean log), the same at
+    every step, and it only accepts the two modes."""
+    import pytest
+
+    from worldenv_core.models.laplace import chunk_log_prob
+
+    g = torch.Generator().manual_seed(0)
+    mu, beta = torch.randn(20_000, 8, 7, generator=g), torch.randn(20_000, 8, 7, generator=g) * 0.3 - 2.5
+    a = laplace_sample(mu, beta, torch.Generator().manual_seed(1), scale=1.5, exploration="chunk")
+    eta = (a - mu) / (1.5 * beta.exp())
+    assert float((eta - eta[:, :1]).abs().max()) < 1e-4  # held for the chunk's 8 steps
+    assert abs(eta[:, 0].abs().mean().item() - 1.0) < 0.02 and abs(eta[:, 0].median().item()) < 0.02  # Laplace(0, 1)
+    lp = chunk_log_prob(a, mu, beta, 1.5, "chunk")
+    assert lp.shape == (20_000, 8) and torch.equal(lp, lp[:, :1].expand_as(lp))
+    own = laplace_log_prob(eta[:, 0], torch.zeros(7), torch.zeros(7)) - (beta + math.log(1.5)).mean(1).sum(-1)
+    torch.testing.assert_close(lp[:, 0], own, atol=1e-4, rtol=1e-5)
+    torch.testing.assert_close(chunk_log_prob(a, mu, beta, 1.5, "step"), laplace_log_prob(a, mu, beta + math.log(1.5)))
+    # a per-step draw is not one held offset: 8 independent ones per chunk
+    step = (laplace_sample(mu, beta, torch.Generator().manual_seed(1)) - mu) / beta.exp()
+    assert float((step - step[:, :1]).abs().mean()) > 0.5
+    for bad in (lambda: laplace_sample(mu, beta, exploration="episode"),
+                lambda: chunk_log_prob(a, mu, beta, 1.0, "episode")):
+        with pytest.raises(ValueError, match="exploration must be one of"):
+            bad()
+
+
+def test_the_held_draws_score_moves_the_whole_chunk_along_the_offset_tried():
+    """The gradient of a chunk-held draw's log-probability with respect to the means is
+    sign(eta) / (K b_k) at every step k: the credit goes to the chunk's mean offset, once."""
+    from worldenv_core.models.laplace import chunk_log_prob
+
+    mu = torch.zeros(1, 8, 7, requires_grad=True)
+    beta = torch.full((1, 8, 7), math.log(0.1))
+    a = laplace_sample(mu.detach(), beta, torch.Generator().manual_seed(3), exploration="chunk")
+    chunk_log_prob(a, mu, beta, 1.0, "chunk")[:, 0].sum().backward()
+    expected = torch.sign(a[:, :1] - 0.0).expand(1, 8, 7) / (8 * 0.1)
+    torch.testing.assert_close(mu.grad, expected)

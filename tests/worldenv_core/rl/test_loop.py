@@ -341,3 +341,30 @@ def test_the_gradients_signal_and_noise_are_recovered_from_its_groups():
     assert abs(none["gradient_signal_sq"]) < 0.2 * 5e5 / groups and none["groups_for_cos_0.9"] > 1000
     with pytest.raises(ValueError, match="at least 2 groups"):
         gradient_signal(grads[0], 1.0, 1)
+
+
+def test_rollouts_with_a_chunk_held_draw_carry_its_log_probs_and_a_tiny_loop_learns_with_them():
+    """exploration=chunk: each chunk's actions are its means plus one held offset, the batch's
+    log-probs are of that draw (PPO starts at ratio exactly 1) and LOOP improves the reward with them."""
+    from worldenv_core.models.laplace import chunk_log_prob
+    from worldenv_core.rl.loop import collect_rollouts, policy_param_groups, ppo_update
+
+    policy, contexts, encoder = _policy_and_contexts()
+    batch = collect_rollouts(policy, ActionRewardEnv(), contexts, 8, encoder, torch.Generator().manual_seed(0),
+                             exploration="chunk")
+    assert batch.exploration == "chunk"
+    eta = (batch.actions - batch.mu_old) / batch.beta_old.exp()
+    assert float((eta - eta[:, :, :1]).abs().max()) < 1e-4
+    torch.testing.assert_close(batch.logp_old, chunk_log_prob(batch.actions, batch.mu_old, batch.beta_old, 1.0, "chunk"))
+    out = ppo_update(policy, torch.optim.Adam(policy_param_groups(policy, 1e-4, 1e-4)), batch, epochs=1, epsilon=0.2,
+                     minibatch=16, generator=torch.Generator().manual_seed(0))
+    assert out["approx_kl"] == pytest.approx(0.0, abs=1e-6) and out["ratio_mean"] == pytest.approx(1.0, abs=1e-5)
+
+    policy, contexts, encoder = _policy_and_contexts()
+    opt = torch.optim.Adam(policy_param_groups(policy, 1e-3, 1e-2))
+    env, rewards = ActionRewardEnv(), []
+    for it in range(12):
+        batch = collect_rollouts(policy, env, contexts, 8, encoder, torch.Generator().manual_seed(it), exploration="chunk")
+        rewards.append(batch.rewards.mean().item())
+        ppo_update(policy, opt, batch, epochs=2, epsilon=0.1, minibatch=8, generator=torch.Generator().manual_seed(it))
+    assert sum(rewards[-3:]) / 3 > sum(rewards[:3]) / 3 + 0.15, rewards

@@ -132,3 +132,17 @@ def test_a_kept_journal_moves_finished_iterations_beside_their_behaviour_policy(
     assert not (journal / digest).exists() and (kept / digest).exists()
     RolloutJournal(journal, saved)  # without keep, as before: the older iterations are removed
     assert (journal / digest).exists()
+
+
+def test_a_journal_tells_a_chunk_held_draw_from_a_per_step_one_and_keeps_the_older_keys():
+    """A rollout is taken back only for the same exploration; per-step jobs keep the key journals
+    written before rl.exploration existed had, so a running campaign resumes with its rollouts."""
+    import dataclasses
+
+    from worldenv_core.rl.real_rollouts import RealRolloutJob, RolloutJournal
+
+    start = RealStart(task_id=2, seed=11)
+    job = RealRolloutJob(None, start, "behaviour", 7, np.zeros(4, dtype=np.float32), 16, 1.6, index=3)
+    assert RolloutJournal._job_key(job) == (3, 7, start.key, 16, 1.6)
+    held = RolloutJournal._job_key(dataclasses.replace(job, exploration="chunk"))
+    assert held != RolloutJournal._job_key(job) and held[-1] == "chunk"
