@@ -163,11 +163,7 @@ def rl_phase(policy, optimizer, collect: Collect, n_contexts: int | None, rl, se
 
     def step(g: torch.Generator) -> dict:
         t0 = time.perf_counter()
-        if n_contexts is None:
-            base = int(torch.randint(2**40, (1,), generator=g))
-            picks = list(range(base, base + rl.contexts_per_iteration))
-        else:
-            picks = torch.randint(n_contexts, (rl.contexts_per_iteration,), generator=g).tolist()
+        picks = draw_contexts(g, n_contexts, rl.contexts_per_iteration)
         stream_seeds = torch.randint(2**62, (len(picks),), generator=g).tolist()
         streams = [torch.Generator().manual_seed(s) for s in stream_seeds]
         mine = distributed.shard(list(range(len(picks))), distributed.rank(), distributed.world_size())
@@ -283,6 +279,17 @@ def chosen(cfg: DictConfig, stage, contract: TaskContract, starts: list[RealStar
         log.warning("context dropped: %s", error)
     stage.metrics["dropped_contexts"] = len(errors)
     return [i for i in mine if starts[i].key not in errors]
+
+
+def draw_contexts(g: torch.Generator, n_contexts: int | None, count: int) -> list[int]:
+    """An iteration's context numbers, its generator's first draw: `count` of the `n_contexts` at
+    random with replacement, or (None: fresh placements) consecutive numbers from a random 40-bit
+    start. Iteration i (from 0) draws from `Generator().manual_seed(step_seed(seed, i))`, so which
+    contexts any iteration of a run saw follows from its seed (`analysis.pool_revisits`)."""
+    if n_contexts is None:
+        base = int(torch.randint(2**40, (1,), generator=g))
+        return list(range(base, base + count))
+    return torch.randint(n_contexts, (count,), generator=g).tolist()
 
 
 def collector(cfg: DictConfig, contract: TaskContract, src: Rollouts, encode, policy_path: str, pmeta: dict, work):
