@@ -4,6 +4,9 @@ imagined rollouts recorded as MCAP, and the table and curves of the post-trainin
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -14,7 +17,8 @@ from worldenv_core.contract import TaskContract
 from worldenv_core.envs.collection import PolicyEvalJob, evaluate_policy_task
 from worldenv_core.envs.replay import PairedReplayJob, RealStart, by_start, placement_starts, replay_context
 from worldenv_core.envs.tasks import contract_task_ids, get_task
-from worldenv_core.manifest import StageRecord
+from worldenv_core.files import write_text_atomic
+from worldenv_core.manifest import StageRecord, sha256_file
 from worldenv_core.parallel import run_jobs
 from worldenv_core.report import ReportContext, markdown_table, short_run, titled
 from worldenv_core.imagination.env import Context
@@ -98,11 +102,28 @@ def real_success(policy_path: str, contract: TaskContract, init_states: int, wor
     return sum(r["success"] for r in rows) / len(rows)
 
 
-def validation_success(policy_path: str, contract: TaskContract, episodes: int, workers, progress: bool) -> dict:
+def validation_key(policy_path: str, contract: TaskContract, episodes: int) -> str | None:
+    """What a validation result depends on: the policy's weights, the task contract and the set's
+    size (the set itself follows from them); None for a policy without a weights file."""
+    weights = Path(policy_path) / "model.safetensors"
+    if not weights.exists():
+        return None
+    what = {"weights": sha256_file(weights), "contract": dataclasses.asdict(contract), "episodes": int(episodes)}
+    return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def validation_success(policy_path: str, contract: TaskContract, episodes: int, workers, progress: bool,
+                       cache: Path | None = None) -> dict:
     """Success (mean actions, oracle termination) on the fixed validation set: `episodes` fresh
     placements spread evenly over the tasks trained on, the same at every evaluation and in every
     run, never a benchmark init state nor a training context (`envs.placements`). What a recipe
-    is judged by: training rollouts' success moves with the contexts an iteration drew."""
+    is judged by: training rollouts' success moves with the contexts an iteration drew. With
+    `cache` (a folder), a policy already validated there (the same weights, contract and set: every
+    new run's iteration 0, the SFT policy) is read back instead of run again: the episodes are
+    deterministic, and none are consumed (`validation_episodes` 0, `validation_cached` 1)."""
+    key = validation_key(policy_path, contract, episodes) if cache is not None else None
+    if key is not None and (cache / f"{key}.json").exists():
+        return {**json.loads((cache / f"{key}.json").read_text()), "validation_episodes": 0, "validation_cached": 1.0}
     tasks = contract_task_ids(contract)
     by_task: dict[int, list[int]] = {t: [] for t in tasks}
     for st in placement_starts(contract.suite, tasks, episodes, "validation"):
@@ -113,8 +134,11 @@ def validation_success(policy_path: str, contract: TaskContract, episodes: int, 
                                   progress=progress, unit="task") for r in out["rows"]]
     per_task = {f"validation_task{t}": float(np.mean([r["success"] for r in rows if r["task_id"] == t]))
                 for t in by_task if by_task[t]}  # scalars, one curve each in the tracker
-    return {"validation_success": sum(r["success"] for r in rows) / len(rows), **per_task,
-            "validation_episodes": len(rows)}
+    out = {"validation_success": sum(r["success"] for r in rows) / len(rows), **per_task, "validation_episodes": len(rows)}
+    if key is not None:
+        cache.mkdir(parents=True, exist_ok=True)
+        write_text_atomic(cache / f"{key}.json", json.dumps(out))
+    return out
 
 
 def imagined_span(loop: StageRecord) -> str:

@@ -308,7 +308,9 @@ def evaluator(cfg: DictConfig, contract, src: Rollouts, policy, policy_path: str
         if checkpoint is not None and cfg.eval.keep_policies:  # the policy at this point, for benchmark runs later
             trainer.save_final(work / "evaluated" / f"iter_{done:04d}", iteration=done)
         if cfg.eval.every and cfg.eval.validation and sim:  # what a recipe is judged by, never the benchmark
-            values.update(validation_success(policy_at, contract, cfg.eval.validation, cfg.eval.workers, cfg.progress))
+            values.update(validation_success(policy_at, contract, cfg.eval.validation, cfg.eval.workers, cfg.progress,
+                                             cache=work.parent / "validation_cache" if cfg.eval.get("validation_cache", True)
+                                             else None))
         if cfg.eval.record_contexts and not real and sim:
             record_imagined(policy, src.env, src.contexts, cfg.eval.record_contexts, contract, encode, src.camera,
                             work / "imagined" / f"iter_{done:04d}", {**provenance, "iteration": str(done)}, cfg.seed)

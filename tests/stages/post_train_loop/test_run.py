@@ -198,12 +198,27 @@ def test_the_real_route_from_fresh_placements_with_a_validation_set_and_a_trust_
                                   "rl.train_scale_head=false", "rl.group_success=[0.1,0.9]"))
     assert metrics["contexts"] == "fresh placements" and metrics["train_real_episodes"] == 2
     assert set(metrics["validation_success"]) == {"0", "1"} and metrics["real_success"] == {}
-    assert metrics["real_episodes"] == 2 * 2  # the validation set at iterations 0 and 1, no benchmark init state
     rec = Manifest(exp).latest("post_train_loop", task="tiny", env="real")
     history = json.loads(Path(next(p for p in Manifest(exp).resolve(rec) if p.name == "training.json")).read_text())
+    validated = [h for h in history if "validation_success" in h]
+    # the validation set at iterations 0 and 1, no benchmark init state; a policy whose weights were validated
+    # before (an update the trust region shrank to nothing) is read back from the cache and consumes none
+    assert metrics["real_episodes"] == 2 + (0 if validated[-1].get("validation_cached") else 2)
     step = next(h for h in history if "mean_reward" in h)
     assert step["rollout_physics_seconds"] > 0 and step["rollout_render_seconds"] > 0 and "update_seconds" in step
     assert history[0]["validation_episodes"] == 2 and "validation_task0" in history[0]
+    # each validated policy is kept in the experiment's cache: the SFT policy at a new run's iteration 0 is read back
+    from stages.post_train_loop.evaluation import validation_key, validation_success
+    from worldenv_core.stage import task_contract
+    work = Path(next(p for p in Manifest(exp).resolve(rec) if p.name == "training.json")).parent
+    cache = work.parent / "validation_cache"
+    assert len(list(cache.glob("*.json"))) == (1 if validated[-1].get("validation_cached") else 2)  # a key per weights
+    contract = task_contract(cfg("post_train_loop", exp, *LOOP))
+    iteration_1 = work / "checkpoints" / "0000001"  # the weights validated at iteration 1
+    again = validation_success(str(iteration_1), contract, 2, 1, False, cache=cache)
+    assert again["validation_cached"] == 1.0 and again["validation_episodes"] == 0
+    assert again["validation_success"] == validated[-1]["validation_success"]
+    assert validation_key(str(iteration_1), contract, 3) != validation_key(str(iteration_1), contract, 2)
     for override, match in (("rl.contexts=scenes", r"rl.contexts must be one of \['episodes', 'placements'\]"),
                             ("rl.group_success=[0.9,0.1]", "rl.group_success: .*two fractions"),
                             ("rl.max_kl=0", "max_kl .* must be > 0"), ("rl.optimizer=rmsprop", "rl.optimizer must be"),
