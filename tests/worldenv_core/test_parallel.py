@@ -22,6 +22,8 @@ def test_ray_launcher_on_a_local_instance():
     pytest.importorskip("ray")
     # Ray workers import the function by module: use one they can import.
     assert sorted(run_jobs(math.factorial, range(5), workers=2, launcher="ray", progress=False)) == [1, 1, 2, 6, 24]
+    # at the driver's priority, not Ray's default niceness 15 (starved on a busy machine): os.nice(0) reads it
+    assert list(run_jobs(os.nice, [0, 0], workers=2, launcher="ray", progress=False)) == [os.nice(0)] * 2
 
 
 def test_bad_launcher_and_workers_are_rejected():
