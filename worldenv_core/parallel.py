@@ -113,8 +113,8 @@ def _ray_results(fn, jobs, workers, address) -> Iterator[Any]:
     if started_here:
         # address=None starts a local Ray instance; "auto" or "ray://host:port" joins a cluster.
         # A local instance's workers at the driver's priority: Ray starts them at niceness 15, so on a
-        # busy machine they get a few per cent of a core (a 15 s expert evaluation took 7 minutes
-        # beside other work); the jobs are the work, the driver only waits for them.
+        # busy machine they get a few per cent of a core (the collect stage's Ray test: 23 s alone,
+        # 460 s in the test suite); the jobs are the work, the driver only waits for them.
         local = {"_system_config": {"worker_niceness": 0}} if address is None else {}
         ray.init(address=address, num_cpus=workers if address is None else None,
                  include_dashboard=False, log_to_driver=False, ignore_reinit_error=True, **local)
