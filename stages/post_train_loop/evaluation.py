@@ -19,7 +19,7 @@ from worldenv_core.envs.replay import PairedReplayJob, RealStart, by_start, plac
 from worldenv_core.envs.tasks import contract_task_ids, get_task
 from worldenv_core.files import write_text_atomic
 from worldenv_core.manifest import StageRecord, sha256_file
-from worldenv_core.parallel import run_jobs
+from worldenv_core.parallel import default_workers, run_jobs
 from worldenv_core.report import ReportContext, markdown_table, short_run, titled
 from worldenv_core.imagination.env import Context
 from worldenv_core.imagination.recording import record_imagined_rollouts, write_imagined_rollouts
@@ -112,6 +112,19 @@ def validation_key(policy_path: str, contract: TaskContract, episodes: int) -> s
     return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:16]
 
 
+def validation_jobs(policy_path: str, contract: TaskContract, episodes: int, workers: int) -> list[PolicyEvalJob]:
+    """The validation set's episodes as worker jobs: a job per task, or per part of one where there
+    are fewer tasks than workers (one task trained on: its 100 placements would run on one core)."""
+    tasks = contract_task_ids(contract)
+    by_task: dict[int, list[int]] = {t: [] for t in tasks}
+    for st in placement_starts(contract.suite, tasks, episodes, "validation"):
+        by_task[st.task_id].append(st.seed)
+    parts = -(-max(1, workers) // max(1, len(tasks)))
+    return [PolicyEvalJob(policy_path=policy_path, contract=contract, task_id=t, init_ids=(), termination="oracle",
+                          placements=tuple(seeds[k::parts])) for t, seeds in by_task.items() for k in range(parts)
+            if seeds[k::parts]]
+
+
 def validation_success(policy_path: str, contract: TaskContract, episodes: int, workers, progress: bool,
                        cache: Path | None = None) -> dict:
     """Success (mean actions, oracle termination) on the fixed validation set: `episodes` fresh
@@ -124,16 +137,12 @@ def validation_success(policy_path: str, contract: TaskContract, episodes: int, 
     key = validation_key(policy_path, contract, episodes) if cache is not None else None
     if key is not None and (cache / f"{key}.json").exists():
         return {**json.loads((cache / f"{key}.json").read_text()), "validation_episodes": 0, "validation_cached": 1.0}
-    tasks = contract_task_ids(contract)
-    by_task: dict[int, list[int]] = {t: [] for t in tasks}
-    for st in placement_starts(contract.suite, tasks, episodes, "validation"):
-        by_task[st.task_id].append(st.seed)
-    jobs = [PolicyEvalJob(policy_path=policy_path, contract=contract, task_id=t, init_ids=(), termination="oracle",
-                          placements=tuple(seeds)) for t, seeds in by_task.items() if seeds]
+    jobs = validation_jobs(policy_path, contract, episodes, workers or default_workers())
+    by_task = {j.task_id for j in jobs}
     rows = [r for out in run_jobs(evaluate_policy_task, jobs, workers=workers, desc="validation",
-                                  progress=progress, unit="task") for r in out["rows"]]
+                                  progress=progress, unit="job") for r in out["rows"]]
     per_task = {f"validation_task{t}": float(np.mean([r["success"] for r in rows if r["task_id"] == t]))
-                for t in by_task if by_task[t]}  # scalars, one curve each in the tracker
+                for t in sorted(by_task)}  # scalars, one curve each in the tracker
     out = {"validation_success": sum(r["success"] for r in rows) / len(rows), **per_task, "validation_episodes": len(rows)}
     if key is not None:
         cache.mkdir(parents=True, exist_ok=True)
