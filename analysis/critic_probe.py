@@ -110,17 +110,17 @@ def main(argv: list[str] | None = None) -> dict:
         torch.manual_seed(args.seed)
         cfg = compose_config("post_train_loop", ["scale=small", *args.overrides])
         contract, rl = task_contract(cfg), cfg.rl
-        n, noise = int(rl.n_rollouts), (float(rl.get("noise_scale", 1.0)), rl.get("exploration", "step"))
+        n, drawn = int(rl.n_rollouts), (float(rl.get("noise_scale", 1.0)), rl.get("exploration", "step"))  # how actions were drawn
         encoder = InstructionEncoder()
         if args.outcomes:
             write_text_atomic(args.outcomes, json.dumps({str(f): start_outcomes(read_journal(f, n))
                                                           for f in (args.fit, args.judge)}, indent=1))
-        fit_policy, fit_batch = load_batch(args.fit, args.fit_policy, contract, encoder, n, *noise)
+        fit_policy, fit_batch = load_batch(args.fit, args.fit_policy, contract, encoder, n, *drawn)
         if args.judge.resolve() == args.fit.resolve():  # one journal: fitted to its even groups, judged on its odd ones
             group = torch.arange(len(fit_batch.rewards)) // n
             judge_policy, judge_batch, fit_batch = fit_policy, select(fit_batch, group % 2 == 1), select(fit_batch, group % 2 == 0)
         else:
-            judge_policy, judge_batch = load_batch(args.judge, args.judge_policy, contract, encoder, n, *noise)
+            judge_policy, judge_batch = load_batch(args.judge, args.judge_policy, contract, encoder, n, *drawn)
         horizon_chunks = -(-int(rl.horizon) // contract.chunk)
         f_fit, rr_fit, cc_fit = chunk_features(fit_policy, fit_batch)
         f_judge, rr_judge, cc_judge = chunk_features(judge_policy, judge_batch)

@@ -6,10 +6,11 @@ part are starts it has not seen. The same behaviour policy drew both, so the dif
 their success is what the earlier updates taught about those starts (task by task, since the tasks
 differ in difficulty far more than any update moved them). Which contexts the earlier iterations drew
 follows from the run's seed (`stages.post_train_loop.training.draw_contexts`); the judged iteration's
-outcomes come from its kept rollout journal.
+outcomes come from its rollout journal (`<work>/kept_rollouts/<digest>` once the next iteration began,
+with `rl.keep_rollouts`; `<work>/rollout_journal/<digest>` while it runs).
 
     python -m analysis.pool_revisits +task=libero_spatial rl=explore rl.placement_pool=100 seed=0 \\
-        --journal <work>/rollout_journal/<digest> --iteration 4 --json results/rl_recipes/pool_revisits_iter4.json
+        --journal <work>/kept_rollouts/<digest> --iteration 4 --json results/rl_recipes/pool_revisits_iter4.json
 """
 
 from __future__ import annotations

@@ -138,11 +138,11 @@ def validation_success(policy_path: str, contract: TaskContract, episodes: int, 
     if key is not None and (cache / f"{key}.json").exists():
         return {**json.loads((cache / f"{key}.json").read_text()), "validation_episodes": 0, "validation_cached": 1.0}
     jobs = validation_jobs(policy_path, contract, episodes, workers or default_workers())
-    by_task = {j.task_id for j in jobs}
+    tasks = {j.task_id for j in jobs}
     rows = [r for out in run_jobs(evaluate_policy_task, jobs, workers=workers, desc="validation",
                                   progress=progress, unit="job") for r in out["rows"]]
     per_task = {f"validation_task{t}": float(np.mean([r["success"] for r in rows if r["task_id"] == t]))
-                for t in sorted(by_task)}  # scalars, one curve each in the tracker
+                for t in sorted(tasks)}  # scalars, one curve each in the tracker
     out = {"validation_success": sum(r["success"] for r in rows) / len(rows), **per_task, "validation_episodes": len(rows)}
     if key is not None:
         cache.mkdir(parents=True, exist_ok=True)

@@ -30,14 +30,18 @@ def laplace_log_prob(action: torch.Tensor, mu: torch.Tensor, beta: torch.Tensor,
 EXPLORATION = ("step", "chunk")
 
 
+def check_exploration(exploration: str) -> None:
+    if exploration not in EXPLORATION:
+        raise ValueError(f"exploration must be one of {EXPLORATION}, got {exploration!r}")
+
+
 def laplace_sample(mu: torch.Tensor, beta: torch.Tensor, generator: torch.Generator | None = None,
                    scale: float = 1.0, exploration: str = "step") -> torch.Tensor:
     """Draw a ~ Laplace(mu, scale * exp(beta)) by inverting the CDF of a uniform draw. `generator`
     may be a list, one per equal block of rows (`distributed.random_rows`). `exploration`: step, a
     draw per element (the paper); chunk, one standard draw eta per action dimension of a chunk
     (mu: (..., K, A)), a_k = mu_k + scale e^beta_k eta at each of its K steps (`chunk_log_prob`)."""
-    if exploration not in EXPLORATION:
-        raise ValueError(f"exploration must be one of {EXPLORATION}, got {exploration!r}")
+    check_exploration(exploration)
     shape = (*mu.shape[:-2], 1, mu.shape[-1]) if exploration == "chunk" else mu.shape
     u = random_rows(torch.rand, shape, generator, device=mu.device, dtype=mu.dtype) - 0.5
     u = u.clamp(-0.5 + 1e-7, 0.5 - 1e-7)  # keep log1p finite at the tails
@@ -63,10 +67,9 @@ def chunk_log_prob(actions: torch.Tensor, mu: torch.Tensor, beta: torch.Tensor, 
     the draw that the moved means' average over the chunk implies: the score pushes the chunk's mean
     along the offset that was tried (a random offset held for K steps moves the arm sqrt(K) times
     as far as K independent ones of its size, with K times fewer draws to credit)."""
+    check_exploration(exploration)
     if exploration == "step":
         return laplace_log_prob(actions, mu, beta + math.log(scale))
-    if exploration != "chunk":
-        raise ValueError(f"exploration must be one of {EXPLORATION}, got {exploration!r}")
     log_b = beta + math.log(scale)
     eta = ((actions - mu) * torch.exp(-log_b)).mean(-2)
     lp = -(eta.abs() + LOG2).sum(-1) - log_b.mean(-2).sum(-1)
