@@ -31,6 +31,7 @@ from omegaconf import DictConfig
 from stages.post_train_loop.evaluation import (PairedCheck, imagined_success, real_success, record_imagined,
                                                validation_success, with_gap)
 from stages.post_train_loop.sweep import sweep_dir, write_summary
+from stages.post_train_loop.es_update import es_phase, seed_from_ledger
 from stages.post_train_loop.training import (Rollouts, check_pack, collector, pack_contexts, paired_guard, rl_phase,
                                              rollouts)
 from worldenv_core.envs.tasks import contract_task_ids
@@ -57,7 +58,8 @@ log = logging.getLogger("worldenv.post_train_loop")
 # imagined: the method (world simulator + reflector); real: the reference, the real simulator and its oracle
 ENVS = ("imagined", "real")
 VERDICTS = ("own", "permuted")  # rl.verdicts: the environment's, or the control's shuffle of them
-UPDATES = ("ppo", "filtered_bc")  # rl.policy_update: LOOP's PPO step, or behaviour cloning of the successes so far
+# rl.policy_update: LOOP's PPO step, behaviour cloning of the successes so far, or evolution strategies in weight space
+UPDATES = ("ppo", "filtered_bc", "es")
 ADVANTAGES = ("rloo", "gae")  # rl.advantages: one per rollout (the paper's RLOO), or per chunk from a critic
 CONTEXTS = ("episodes", "placements")  # rl.contexts: collected episodes' starts, or fresh placements (env=real)
 # rl settings added after runs were made: at these values a run keeps the work dir it had before them
@@ -67,7 +69,8 @@ RL_DEFAULTS = {"mid_episode_frames": 0, "verdicts": "own", "contexts": "episodes
                "guard_max_hack_rate": 0.5, "policy_update": "ppo", "bc_steps": 200, "bc_minibatch": 32, "bc_augment_shift": 4,
                "placement_pool": None, "advantages": "rloo", "gae_lambda": 0.95, "critic_steps": 500,
                "critic_minibatch": 256, "critic_lr": 1e-3, "critic_hidden": 256, "critic_replay": 0,
-               "exploration": "step"}
+               "exploration": "step", "es_pairs": 8, "es_sigma": 0.05, "es_step": 0.05, "es_top": None,
+               "es_discount": 1.0, "es_parameters": "mean", "es_ledger_from": None}
 # top-level settings added later, kept out of the settings hash and work dir at these values
 LATER_DEFAULTS = {"contexts_to": None, "contexts_from": None, "minutes": None}
 
@@ -142,6 +145,8 @@ def validate(cfg: DictConfig) -> None:
     validate_guard(cfg)
     if cfg.rl.policy_update not in UPDATES:
         raise ConfigError(f"rl.policy_update must be one of {list(UPDATES)}, got {cfg.rl.policy_update!r}")
+    if cfg.rl.policy_update == "es":
+        validate_es(cfg)
     positive_int(cfg, "rl.bc_steps")
     positive_int(cfg, "rl.bc_minibatch")
     positive_int(cfg, "rl.bc_augment_shift", allow_zero=True)
@@ -221,6 +226,9 @@ def run(cfg: DictConfig) -> dict:
         provenance = {"policy": policy_path, "worldsim": worldsim_path, "reflector": reflector_path}
         value = (ChunkValue(-(-int(rl.horizon) // contract.chunk), rl.critic_hidden, rl.critic_lr, rl.critic_steps,
                             rl.critic_minibatch, rl.gae_lambda, rl.critic_replay) if rl.advantages == "gae" else None)
+        if rl.policy_update == "es" and rl.get("es_ledger_from"):  # a campaign's ledger, on an empty work dir
+            seed_from_ledger(work, rl.es_ledger_from, policy, {"ppo": optimizer}, read_config(policy_path)["model"],
+                             loop_meta(pmeta, provenance, src, key.get("contexts_from")), rl)
         trainer = Trainer(work, policy, {"ppo": optimizer}, model_config=read_config(policy_path)["model"],
                           meta=loop_meta(pmeta, provenance, src, key.get("contexts_from")), log_every=1, checkpoint_every=1, desc="post_train_loop", progress=cfg.progress,
                           postfix=("mean_reward", "reflector_success_rate", "approx_kl"),
@@ -228,13 +236,16 @@ def run(cfg: DictConfig) -> dict:
                           extra_state=(lambda: {"critic": value.state_dict()}) if value else None)
         if value is not None and "critic" in trainer.extra:  # a resumed run: the critic as of its last iteration
             value.load_state_dict(trainer.extra["critic"], device)
-        log.info("post-training %s for %d iterations in the %s environment: %d contexts x %d rollouts each, eta %s, "
-                 "on %s; work dir %s", policy_path, rl.iterations, cfg.env, rl.contexts_per_iteration, rl.n_rollouts,
+        per_context = (f"{2 * rl.es_pairs} weight-space members" if rl.policy_update == "es" else f"{rl.n_rollouts} rollouts")
+        log.info("post-training %s for %d iterations in the %s environment: %d contexts x %s each, eta %s, "
+                 "on %s; work dir %s", policy_path, rl.iterations, cfg.env, rl.contexts_per_iteration, per_context,
                  "oracle" if real else f"{src.eta:.2f}", device, work)
         evaluate = evaluator(cfg, contract, src, policy, policy_path, encode, trainer, work, packed, provenance)
         buffer = SuccessBuffer(work / "success_buffer") if rl.policy_update == "filtered_bc" else None  # kept: the data
-        trainer.fit([rl_phase(policy, optimizer, collect, src.n_contexts, rl, cfg.seed,
-                              paired_guard(cfg, contract, src, encode), buffer, value)], evaluate=evaluate,
+        phase = (es_phase(policy, collect, src.n_contexts, rl, cfg.seed, work / "es_ledger") if rl.policy_update == "es" else
+                 rl_phase(policy, optimizer, collect, src.n_contexts, rl, cfg.seed, paired_guard(cfg, contract, src, encode),
+                          buffer, value))
+        trainer.fit([phase], evaluate=evaluate,
                     evaluate_every=cfg.eval.every, deadline=deadline)
         for journal in (work / "rollout_journal").glob("*"):  # every iteration it kept is checkpointed now
             retire(journal, work / "kept_rollouts" if rl.keep_rollouts else None)
@@ -252,6 +263,30 @@ def run(cfg: DictConfig) -> dict:
     return stage.metrics
 
 
+def validate_es(cfg: DictConfig) -> None:
+    """rl.policy_update=es: the members act in the real simulator (the imagined route's members are not built
+    yet), with sizes that make a step."""
+    from worldenv_core.rl.es import PARAMETER_SETS
+
+    if cfg.env != "real":
+        raise ConfigError("rl.policy_update=es runs its weight-space members in the real simulator: it needs env=real")
+    positive_int(cfg, "rl.es_pairs")
+    for key in ("es_sigma", "es_step"):
+        if not cfg.rl[key] > 0:
+            raise ConfigError(f"rl.{key} must be > 0 (a size relative to each weight tensor's RMS), got {cfg.rl[key]}")
+    if not 0 < cfg.rl.es_discount <= 1:
+        raise ConfigError(f"rl.es_discount must be in (0, 1] (1: the return is the success), got {cfg.rl.es_discount}")
+    if cfg.rl.es_top is not None and not (isinstance(cfg.rl.es_top, int) and 0 < cfg.rl.es_top <= cfg.rl.es_pairs):
+        raise ConfigError(f"rl.es_top must be null (every pair) or an int in 1..rl.es_pairs, got {cfg.rl.es_top!r}")
+    if cfg.rl.es_parameters not in PARAMETER_SETS:
+        raise ConfigError(f"rl.es_parameters must be one of {list(PARAMETER_SETS)}, got {cfg.rl.es_parameters!r}")
+
+
+def episodes_per_iteration(rl) -> int:
+    """Real episodes one iteration trains on: N rollouts per context, or (ES) both members of each pair per context."""
+    return rl.contexts_per_iteration * (2 * rl.es_pairs if rl.policy_update == "es" else rl.n_rollouts)
+
+
 def work_key(config: dict, pack_sha256: str | None) -> dict:
     """What names the work dir (what resume finds): what defines the training and its inputs, not how
     it is evaluated or shown (changing eval.* or progress continues the same run); rl settings added
@@ -259,7 +294,8 @@ def work_key(config: dict, pack_sha256: str | None) -> dict:
     by its content."""
     key = {k: v for k, v in config.items() if k not in ("eval", "progress")}
     key["rl"] = {k: v for k, v in key["rl"].items() if not (k in RL_DEFAULTS and v == RL_DEFAULTS[k])
-                 and k != "keep_rollouts"}  # what is kept of the rollouts is not what is trained
+                 and k not in ("keep_rollouts", "es_ledger_from")}  # what is kept, and where a run was seeded from,
+    # are not what is trained: a campaign seeded from its ledger keeps its work dir's name
     return {**key, "contexts_from": pack_sha256} if pack_sha256 else key
 
 
@@ -286,7 +322,8 @@ def _time_iterations(policy, collect, src: Rollouts, rl, cfg: DictConfig, second
     probe_opt = make_optimizer(probe_policy, rl.optimizer, rl.lr_backbone, rl.lr_heads, rl.train_scale_head)
     probe_rl = copy.deepcopy(rl)
     probe_rl.iterations = 4
-    probe = rl_phase(probe_policy, probe_opt, collect, src.n_contexts, probe_rl, cfg.seed, buffer=SuccessBuffer(None))
+    probe = (es_phase(probe_policy, collect, src.n_contexts, probe_rl, cfg.seed) if rl.policy_update == "es" else
+             rl_phase(probe_policy, probe_opt, collect, src.n_contexts, probe_rl, cfg.seed, buffer=SuccessBuffer(None)))
     return planned_steps(probe.step, iter(probe.batches(0)), seconds, probe=3, warm=1)
 
 
@@ -336,7 +373,7 @@ def run_metrics(cfg: DictConfig, contract, trainer, device) -> dict:
             "paired_hack_rate": by_step("paired_hack_rate"), "paired_imagined_mixed": by_step("paired_imagined_mixed"),
             "paired_real_mixed": by_step("paired_real_mixed"),
             # the reference trains on real episodes: what the imagined route is compared at
-            "train_real_episodes": trainer.step * rl.contexts_per_iteration * rl.n_rollouts if cfg.env == "real" else 0,
+            "train_real_episodes": trainer.step * episodes_per_iteration(rl) if cfg.env == "real" else 0,
             "kept_groups": float(np.mean([h["kept_groups"] for h in history if "kept_groups" in h] or [float("nan")]))}
 
 

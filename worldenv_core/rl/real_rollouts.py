@@ -50,6 +50,9 @@ class RealRolloutJob:
     noise_scale: float = 1.0
     index: int = 0  # its place in the batch
     exploration: str = "step"  # a Laplace draw per step, or one per chunk (`laplace.laplace_sample`)
+    perturbation: tuple[int, float] | None = None  # an ES member: the behaviour's weights + coef * direction(seed)
+    es_parameters: str = "mean"  # which weights the perturbation moves (`es.es_parameters`)
+    keep_frames: bool = True  # False: only the outcome comes back (an ES member's rollout trains nothing)
 
 
 @functools.lru_cache(maxsize=1)
@@ -58,6 +61,17 @@ def _policy(path: str, contract: TaskContract):
     from worldenv_core.models.checkpoint import load_checkpoint
 
     return load_checkpoint(path, "policy", contract)[0].eval()
+
+
+@functools.lru_cache(maxsize=1)
+def _member(path: str, contract: TaskContract, perturbation: tuple[int, float], which: str):
+    """An ES member: the behaviour policy moved along its seed's direction (`es.perturb`), built once
+    per worker for consecutive rollouts of the same member."""
+    import copy
+
+    from worldenv_core.rl.es import perturb
+
+    return perturb(copy.deepcopy(_policy(path, contract)), *perturbation, which).eval()
 
 
 @torch.no_grad()
@@ -74,7 +88,8 @@ def real_rollout(job: RealRolloutJob) -> dict:
     clock = {"env_build": 0.0, "reset": 0.0, "render": 0.0, "policy": 0.0, "physics": 0.0}
     t0 = time.perf_counter()
     env = cached_env(c.suite, job.start.task_id, c.cameras, c.image_size, render=True)
-    policy = _policy(job.policy_path, c)
+    policy = (_member(job.policy_path, c, job.perturbation, job.es_parameters) if job.perturbation is not None
+              else _policy(job.policy_path, c))
     clock["env_build"] = time.perf_counter() - t0  # ~0 once the worker has this task's env and iteration's policy
     lang = torch.as_tensor(job.instruction, dtype=torch.float32)[None]
     g = torch.Generator().manual_seed(int(job.seed))
@@ -94,7 +109,8 @@ def real_rollout(job: RealRolloutJob) -> dict:
             mu, beta = timed("policy", policy, {camera: torch.from_numpy(image).permute(2, 0, 1)[None]},
                              torch.as_tensor(frame.proprio, dtype=torch.float32)[None], lang)
             a = laplace_sample(mu, beta, g, job.noise_scale, job.exploration)
-            frames.append(image), proprio.append(frame.proprio.astype(np.float32)), chunks.append(a[0].numpy())
+            if job.keep_frames:
+                frames.append(image), proprio.append(frame.proprio.astype(np.float32)), chunks.append(a[0].numpy())
             n = 0
             for action in policy.unnormalize_actions(a)[0].numpy():
                 frame = timed("physics", env.step, action)
@@ -108,7 +124,8 @@ def real_rollout(job: RealRolloutJob) -> dict:
         frames, proprio, chunks = frames[:len(executed)], proprio[:len(executed)], chunks[:len(executed)]
     clock["total"] = time.perf_counter() - t0
     return {"index": job.index, "start": job.start, "seed": job.seed, "frames": frames, "proprio": proprio, "actions": chunks,
-            "executed": executed, "first_success": first_success, "error": error, "seconds": clock}
+            "executed": executed, "first_success": first_success, "error": error, "seconds": clock,
+            "steps": sum(executed)}
 
 
 class RolloutJournal:
@@ -137,7 +154,8 @@ class RolloutJournal:
     @staticmethod
     def _job_key(job: RealRolloutJob) -> tuple:
         key = job.index, job.seed, job.start.key, job.horizon, job.noise_scale
-        return key if job.exploration == "step" else (*key, job.exploration)  # journals from before it still match
+        key = key if job.exploration == "step" else (*key, job.exploration)  # journals from before it still match
+        return key if job.perturbation is None else (*key, job.perturbation, job.es_parameters)
 
     def _path(self, job: RealRolloutJob) -> Path:
         return self.folder / f"{job.index:05d}.rollout"
@@ -180,8 +198,6 @@ def collect_real_rollouts(behaviour, behaviour_path: str | Path, contract: TaskC
     every finished rollout (`RolloutJournal`); the ones it holds already are not run again; `keep`:
     where finished iterations' journals go instead of being removed; `exploration`: a draw per step
     or per chunk."""
-    from worldenv_core.parallel import run_jobs
-
     if n_rollouts < 2:
         raise ValueError(f"RLOO needs at least 2 rollouts per context, got N={n_rollouts}")
     chunk = contract.chunk
@@ -191,6 +207,17 @@ def collect_real_rollouts(behaviour, behaviour_path: str | Path, contract: TaskC
     lang = encoder([instructions[i // n_rollouts] for i in range(len(seeds))]).float().cpu()
     jobs = [RealRolloutJob(contract, starts[i // n_rollouts], str(behaviour_path), s, lang[i].numpy(), horizon, noise_scale,
                            index=i, exploration=exploration) for i, s in enumerate(seeds)]
+    runs = run_journaled(jobs, behaviour_path, journal, keep, workers, launcher, ray_address, progress)
+    return batch_from_runs(runs, behaviour, contract, lang, n_rollouts, noise_scale, exploration)
+
+
+def run_journaled(jobs: list[RealRolloutJob], behaviour_path: str | Path, journal: str | Path | None,
+                  keep: str | Path | None = None, workers: int | None = None, launcher: str = "local",
+                  ray_address: str | None = None, progress: bool = False) -> list[dict]:
+    """`real_rollout` of every job (indexed 0..n-1), in index order; with a `journal` folder those it
+    holds are taken back and each new one is kept as it finishes (`RolloutJournal`)."""
+    from worldenv_core.parallel import run_jobs
+
     book = RolloutJournal(journal, behaviour_path, keep) if journal is not None else None
     runs = [r for r in (book.get(j) for j in jobs) if r is not None] if book else []
     kept = {r["index"] for r in runs}
@@ -201,8 +228,29 @@ def collect_real_rollouts(behaviour, behaviour_path: str | Path, contract: TaskC
         if book:
             book.add(jobs[r["index"]], r)
         runs.append(r)
-    runs.sort(key=lambda r: r["index"])
-    return batch_from_runs(runs, behaviour, contract, lang, n_rollouts, noise_scale, exploration)
+    return sorted(runs, key=lambda r: r["index"])
+
+
+def collect_member_outcomes(behaviour_path: str | Path, contract: TaskContract, starts: list[RealStart],
+                            instructions: list[str], members: list[tuple[int, float]], encoder, horizon: int,
+                            which: str = "mean", workers: int | None = None, progress: bool = False,
+                            journal: str | Path | None = None, keep: str | Path | None = None) -> dict:
+    """Every ES member (`es.antithetic_members`: the behaviour policy at `behaviour_path` moved by
+    (seed, coef)) from every start, with its mean actions: the same starts for every member, so their
+    returns differ by what the member does. Member-major jobs: a worker rebuilds a member once for its
+    consecutive rollouts. -> success and steps (contexts, members), the episodes, the time split."""
+    chunk = contract.chunk
+    horizon = -(-int(horizon) // chunk) * chunk
+    lang = encoder(list(instructions)).float().cpu()
+    jobs = [RealRolloutJob(contract, starts[c], str(behaviour_path), 0, lang[c].numpy(), horizon, 0.0,
+                           index=m * len(starts) + c, perturbation=members[m], es_parameters=which, keep_frames=False)
+            for m in range(len(members)) for c in range(len(starts))]
+    runs = run_journaled(jobs, behaviour_path, journal, keep, workers, progress=progress)
+    shape = (len(members), len(starts))
+    success = torch.tensor([r["error"] is None and r["first_success"] is not None for r in runs]).view(shape).T
+    steps = torch.tensor([r["first_success"] or r.get("steps", horizon) for r in runs]).view(shape).T
+    return {"success": success, "steps": steps, "episodes": len(runs), "errors": sum(r["error"] is not None for r in runs),
+            "timing": {k: sum(r["seconds"][k] for r in runs) for k in runs[0]["seconds"]} if runs else {}}
 
 
 def batch_from_runs(runs: list[dict], behaviour, contract: TaskContract, lang: torch.Tensor, n_rollouts: int,

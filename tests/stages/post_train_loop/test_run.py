@@ -8,12 +8,14 @@ from pathlib import Path
 import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+from stages.post_train_loop.es_update import export_ledger
 from stages.post_train_loop.run import run as post_train_loop
 from stages.train_reflector.run import run as train_reflector
 from tests.stages.conftest import REFLECTOR, stage_cfg
 from worldenv_core.data.mcap_io import read_episode, read_reflector_scores
 from worldenv_core.manifest import Manifest
 from worldenv_core.models.checkpoint import load_checkpoint
+from worldenv_core.rl import es
 from worldenv_core.stage import ConfigError
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
@@ -413,3 +415,52 @@ def test_per_chunk_advantages_from_a_critic_fitted_to_the_earlier_iterations(tra
                             ("rl.policy_update=filtered_bc", "rl.advantages=gae weighs PPO's steps")):
         with pytest.raises(ConfigError, match=match):
             post_train_loop(cfg("post_train_loop", exp, *LOOP, "rl.advantages=gae", override))
+
+
+def test_evolution_strategies_in_weight_space_on_real_rollouts(trained):
+    """rl.policy_update=es: antithetic weight-space members act with their mean actions from the same fresh
+    placements, every episode counted; the step is ARS's, made in the weights the mean reads (the scale head
+    untouched), and a resumed run takes the journal's rollouts back. Bad settings are named first."""
+    exp, _ = trained
+    es_args = [*LOOP, "env=real", "rl=es", "rl.iterations=1", "rl.contexts_per_iteration=2", "rl.es_pairs=2",
+               "rl.horizon=16", "eval.every=0", "rl.keep_rollouts=true"]
+    metrics = post_train_loop(cfg("post_train_loop", exp, *es_args))
+    assert metrics["contexts"] == "fresh placements" and metrics["train_real_episodes"] == 2 * 2 * 2
+    rec = Manifest(exp).latest("post_train_loop", task="tiny", env="real")
+    history = json.loads(Path(next(p for p in Manifest(exp).resolve(rec) if p.name == "training.json")).read_text())
+    step = next(h for h in history if "es_pairs" in h)
+    assert step["train_episodes"] == 8 and step["es_pairs"] == 2 and step["rollout_physics_seconds"] > 0
+    work = Path(next(p for p in Manifest(exp).resolve(rec) if p.name == "training.json")).parent
+    (entry,) = es.read_ledger(work / "es_ledger")  # contexts x members, the seeds, the step's settings
+    assert len(entry["success"]) == 2 and len(entry["success"][0]) == 4 and entry["es_sigma"] == 0.05
+    (kept,) = [p for p in (work / "kept_rollouts").iterdir() if not p.name.endswith("_behaviour")]
+    rollouts = [pickle.loads(zlib.decompress(f.read_bytes())) for f in sorted(kept.glob("*.rollout"))]
+    assert len(rollouts) == 8 and all(r["frames"] == [] for _, r in rollouts)  # the outcome only comes back
+    assert {key[-2][1] for key, _ in rollouts} == {0.05, -0.05}  # the members, + and - of each direction
+    post, meta = load_checkpoint(str(work / "policy"), "policy")
+    sft, _ = load_checkpoint(meta["post_trained_from"], "policy")
+    moved = {n for (n, a), (_, b) in zip(sft.named_parameters(), post.named_parameters()) if not a.equal(b)}
+    assert not any(n.startswith("scale_head.") for n in moved)
+    assert bool(moved) == (step["es_return_std"] > 0)  # no step where every member returned the same
+    # a campaign on a machine whose outputs/ is empty: its ledger (kept in the repository) seeds the run, which
+    # goes on from the policy the ledger's steps make
+    kept_ledger = export_ledger(work, Path(exp) / "kept_ledger")
+    seeded = post_train_loop(cfg("post_train_loop", exp, *es_args, "rl.iterations=2", f"rl.es_ledger_from={kept_ledger}"))
+    assert seeded["train_real_episodes"] == 16
+    rec2 = Manifest(exp).latest("post_train_loop", task="tiny", env="real")
+    work2 = Path(next(p for p in Manifest(exp).resolve(rec2) if p.name == "training.json")).parent
+    ledger2 = es.read_ledger(work2 / "es_ledger")
+    assert work2 != work and len(ledger2) == 2 and ledger2[0] == entry
+    again = es.replay_ledger(load_checkpoint(meta["post_trained_from"], "policy")[0], ledger2)
+    final2, _ = load_checkpoint(str(work2 / "policy"), "policy")
+    assert all(p.equal(q) for p, q in zip(again.parameters(), final2.parameters()))
+    with pytest.raises(ConfigError, match="was made with rl.es_sigma=0.05"):
+        post_train_loop(cfg("post_train_loop", exp, *es_args, "rl.iterations=3", "rl.es_sigma=0.1",
+                            f"rl.es_ledger_from={kept_ledger}"))
+    for override, match in (("rl.es_sigma=0", r"rl.es_sigma must be > 0"), ("rl.es_top=3", "rl.es_top must be"),
+                            ("rl.es_discount=1.5", r"rl.es_discount must be in \(0, 1\]"),
+                            ("rl.es_parameters=all", "rl.es_parameters must be one of")):
+        with pytest.raises(ConfigError, match=match):
+            post_train_loop(cfg("post_train_loop", exp, *es_args, override))
+    with pytest.raises(ConfigError, match="rl.policy_update=es .* needs env=real"):
+        post_train_loop(cfg("post_train_loop", exp, *LOOP, "rl.policy_update=es"))

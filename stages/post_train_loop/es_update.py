@@ -1,0 +1,129 @@
+"""The real route's weight-space update (`rl.policy_update=es`, `worldenv_core/rl/es.py`): the members'
+rollouts, one ARS step per iteration as the Trainer's step, and a run seeded from a ledger kept in the
+repository, so a campaign goes on from where it was on a machine whose `outputs/` is empty."""
+
+from __future__ import annotations
+
+import copy
+import itertools
+import json
+import logging
+import shutil
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+
+from stages.post_train_loop.training import draw_contexts
+from worldenv_core.envs.replay import RealStart
+from worldenv_core.errors import ConfigError
+from worldenv_core.models.checkpoint import save_model
+from worldenv_core.rl import es
+from worldenv_core.rl.real_rollouts import collect_member_outcomes
+from worldenv_core.training import Phase, per_step, step_seed
+from worldenv_core.training.checkpoints import Checkpoints
+
+log = logging.getLogger("worldenv.post_train_loop")
+
+
+def es_collector(contract, starts: list[RealStart] | Callable[[int], tuple[RealStart, str]], instructions: list[str],
+                 encode, horizon: int, model_config: dict, meta: dict, folder: Path, workers, progress: bool,
+                 which: str, keep: Path | None = None):
+    """(base policy, context numbers, members) -> every member's real outcome from every context
+    (`rl.policy_update=es`): the base saved once per iteration as `real_collector` saves its behaviour
+    policy, the members rebuilt from it in the workers, every finished rollout in the journal."""
+    count = itertools.count()
+    lookup = starts if callable(starts) else (lambda i: (starts[i], instructions[i]))
+
+    def collect(base, picks, members):
+        for old in folder.glob("behaviour_*"):
+            shutil.rmtree(old, ignore_errors=True)
+        path = save_model(folder / f"behaviour_{next(count)}", base, model_config, meta)
+        chosen = [lookup(i) for i in picks]
+        return collect_member_outcomes(path, contract, [st for st, _ in chosen], [i for _, i in chosen], members,
+                                       encode, horizon, which, workers=workers, progress=progress,
+                                       journal=folder / "rollout_journal", keep=keep)
+    return collect
+
+
+def es_phase(policy, collect, n_contexts: int | None, rl, seed: int, ledger: Path | None = None) -> Phase:
+    """`rl.policy_update=es`: one iteration = `rl.es_pairs` antithetic weight-space members (`worldenv_core.rl.es`),
+    each acting with its mean actions from the same `rl.contexts_per_iteration` contexts, then one ARS step.
+    Contexts and directions are the iteration's generator's draws, so a resumed iteration runs the same
+    members from the same starts (and takes its journal's finished rollouts back). `ledger`: a folder that
+    keeps each iteration's contexts, seeds and outcomes (`iter_NNNN.json`): with the starting policy, all
+    that the run's weights follow from (`es.replay_ledger`)."""
+    def step(item) -> dict:
+        it, g = item
+        t0 = time.perf_counter()
+        picks = draw_contexts(g, n_contexts, rl.contexts_per_iteration)
+        seeds = torch.randint(2**62, (rl.es_pairs,), generator=g).tolist()
+        members = es.antithetic_members(seeds, rl.es_sigma)
+        out = collect(copy.deepcopy(policy).eval(), picks, members)
+        returns = es.member_returns(out["success"], out["steps"], rl.es_discount)
+        t_update = time.perf_counter()
+        stats = es.ars_update(policy, seeds, returns, rl.es_step, rl.get("es_top"), rl.es_parameters)
+        stats["update_seconds"] = time.perf_counter() - t_update
+        if ledger is not None:
+            es.write_ledger_entry(ledger, it + 1, picks, seeds, out["success"], out["steps"], returns, rl)
+        stats.update({f"rollout_{k}_seconds": v for k, v in out["timing"].items()})
+        success = out["success"].float()
+        return {"mean_reward": float(success.mean()), "reflector_success_rate": float(success.mean()),
+                "episode_length": float(out["steps"].float().mean()), "train_episodes": float(out["episodes"]),
+                "rollout_errors": float(out["errors"]), **stats, "seconds": time.perf_counter() - t0}
+    return Phase("rl", rl.iterations, lambda start: per_step(
+        lambda it: (it, torch.Generator().manual_seed(step_seed(seed, it))), start), step)
+
+
+LEDGER_MUST_MATCH = ("es_pairs", "contexts_per_iteration", *es.LEDGER_SETTINGS)
+
+
+def seed_from_ledger(work: Path, ledger_from: str | Path, policy, optimizers: dict, model_config: dict, meta: dict,
+                     rl) -> int:
+    """`rl.es_ledger_from=<folder>` on a work dir with no checkpoint: the starting policy moved by the folder's
+    ledger (`iter_NNNN.json`, `es.replay_ledger`) is checkpointed at its last iteration, with the run's history
+    as far as the folder's `history.json` holds it, so the same command continues the run from there (a
+    campaign's ledger kept in the repository outlives a machine's `outputs/`). The ledger's settings must be
+    this run's. -> the iteration it starts from (0: the work dir had a checkpoint, nothing seeded)."""
+    checkpoints = Checkpoints(work)
+    if checkpoints.last is not None:
+        return 0
+    folder = Path(ledger_from)
+    try:
+        entries = es.read_ledger(folder)
+    except (OSError, ValueError, KeyError) as e:
+        raise ConfigError(f"rl.es_ledger_from={ledger_from}: {e}") from None
+    if not entries:
+        raise ConfigError(f"rl.es_ledger_from={ledger_from} holds no iter_NNNN.json")
+    for e in entries:
+        shape = (len(e["success"]), len(e["success"][0]) if e["success"] else 0)
+        settings = {**{k: e.get(k) for k in es.LEDGER_SETTINGS}, "es_pairs": len(e["seeds"]),
+                    "contexts_per_iteration": shape[0]}
+        wrong = [k for k in LEDGER_MUST_MATCH if settings[k] != rl.get(k)]
+        if wrong:
+            raise ConfigError(f"rl.es_ledger_from={ledger_from}: iteration {e['iteration']} was made with "
+                              + ", ".join(f"rl.{k}={settings[k]}" for k in wrong) + ", not this run's")
+    done = min(len(entries), int(rl.iterations))
+    es.replay_ledger(policy, entries, done)
+    for e in entries[:done]:
+        es.write_ledger_entry(work / "es_ledger", e["iteration"], e["contexts"], e["seeds"], torch.tensor(e["success"]),
+                              torch.tensor(e["steps"]), torch.tensor(e["returns"]), rl)
+    history = json.loads((folder / "history.json").read_text()) if (folder / "history.json").exists() else []
+    history = [h for h in history if h.get("step", 0) <= done]
+    evaluated = sorted({int(h["step"]) for h in history if "validation_success" in h or "real_success" in h})
+    checkpoints.save(done, policy, model_config, meta, optimizers, history, trainer={"evaluated": evaluated})
+    log.info("seeded %s from the ledger %s: %d iterations replayed on the starting policy", work, folder, done)
+    return done
+
+
+def export_ledger(work: Path, to: Path) -> Path:
+    """A run's ledger and history (its last checkpoint's) copied to `to`, what `seed_from_ledger` reads."""
+    to.mkdir(parents=True, exist_ok=True)
+    for f in sorted((work / "es_ledger").glob("iter_*.json")):
+        shutil.copy2(f, to / f.name)
+    last = Checkpoints(work).last
+    if last is not None:
+        history = torch.load(last / "training_state.pt", weights_only=False)["history"]
+        (to / "history.json").write_text(json.dumps(history, indent=0, default=float))
+    return to

@@ -1,0 +1,119 @@
+"""Evolution strategies in weight space: directions named by seeds, antithetic members, ARS's step."""
+import copy
+
+import pytest
+import torch
+from torch import nn
+
+from worldenv_core.rl import es
+
+
+class Tiny(nn.Module):
+    """The policy's parameter names where they matter: the scale head is never moved."""
+
+    def __init__(self):
+        super().__init__()
+        self.backbone = nn.Linear(3, 4)
+        self.trunk = nn.Linear(4, 4)
+        self.action_head = nn.Linear(4, 2)
+        self.scale_head = nn.Linear(4, 2)
+
+
+def test_a_direction_is_rebuilt_from_its_seed_and_scaled_by_each_tensors_rms():
+    torch.manual_seed(0)
+    m = Tiny()
+    with torch.no_grad():
+        m.trunk.weight.mul_(10.0)
+    a, b = es.directions(m, 7), es.directions(m, 7)
+    assert all(x.equal(y) for x, y in zip(a, b)) and not es.directions(m, 8)[0].equal(a[0])
+    names = [n for n, _ in es.es_parameters(m)]
+    assert not any(n.startswith("scale_head") for n in names)
+    assert [n for n, _ in es.es_parameters(m, "heads")] == ["trunk.weight", "trunk.bias", "action_head.weight",
+                                                             "action_head.bias"]
+    big, small = a[names.index("trunk.weight")], a[names.index("backbone.weight")]
+    assert big.std() > 4 * small.std()  # relative noise: the tensor 10x larger gets ~10x the move
+    with pytest.raises(ValueError, match="es_parameters must be one of"):
+        es.es_parameters(m, "all")
+
+
+def test_members_are_antithetic_and_rebuilt_exactly_from_the_base():
+    torch.manual_seed(0)
+    m = Tiny()
+    (s1, c1), (s2, c2) = es.antithetic_members([5], 0.1)
+    assert s1 == s2 == 5 and c1 == -c2 == 0.1
+    plus, minus = es.perturb(copy.deepcopy(m), s1, c1), es.perturb(copy.deepcopy(m), s2, c2)
+    for (n, p), (_, q), (_, r) in zip(m.named_parameters(), plus.named_parameters(), minus.named_parameters()):
+        if n.startswith("scale_head"):
+            assert p.equal(q) and p.equal(r)
+        else:
+            assert torch.allclose((q + r) / 2, p, atol=1e-6) and not q.equal(p)
+    with pytest.raises(ValueError, match="es_sigma must be > 0"):
+        es.antithetic_members([1], 0.0)
+
+
+def test_member_returns_are_successes_or_discounted_successes():
+    success = torch.tensor([[1, 0], [1, 1]]).bool()
+    steps = torch.tensor([[10, 50], [20, 5]])
+    assert es.member_returns(success, steps).tolist() == [1.0, 0.5]
+    r = es.member_returns(success, steps, 0.9)
+    assert torch.allclose(r, torch.tensor([(0.9 ** 10 + 0.9 ** 20) / 2, 0.9 ** 5 / 2]))
+    with pytest.raises(ValueError, match="es_discount"):
+        es.member_returns(success, steps, 0.0)
+
+
+def test_ars_climbs_a_smooth_objective_and_makes_no_step_without_a_difference():
+    """Success probability a logistic function of the action head's bias: ARS with antithetic members
+    and noisy (Bernoulli, shared contexts) returns raises it; equal returns move nothing."""
+    torch.manual_seed(0)
+    m = Tiny()
+    target = torch.tensor([1.0, -1.0])
+
+    def p_success(model):
+        return torch.sigmoid(-4 * (model.action_head.bias - target).pow(2).sum())
+
+    g = torch.Generator().manual_seed(1)
+    with torch.no_grad():
+        before = float(p_success(m))
+    for it in range(60):
+        seeds = torch.randint(2**62, (8,), generator=g).tolist()
+        members = es.antithetic_members(seeds, 0.3)
+        probs = torch.stack([p_success(es.perturb(copy.deepcopy(m), s, c)) for s, c in members]).detach()
+        u = torch.rand(32, 1, generator=g)  # common random numbers: the same 32 contexts for every member
+        success = u < probs[None]
+        es.ars_update(m, seeds, es.member_returns(success, torch.zeros_like(success, dtype=torch.long)), 0.3,
+                      top=4)
+    with torch.no_grad():
+        assert float(p_success(m)) > before + 0.3
+    frozen = copy.deepcopy(m)
+    stats = es.ars_update(m, [1, 2], torch.tensor([0.5, 0.5, 0.5, 0.5]), 0.3)
+    assert stats["es_step_rms"] == 0.0 and all(p.equal(q) for p, q in zip(m.parameters(), frozen.parameters()))
+    with pytest.raises(ValueError, match="es_step must be > 0"):
+        es.ars_update(m, [1], torch.tensor([1.0, 0.0]), 0.0)
+
+
+def test_the_ledger_rebuilds_the_runs_weights_from_the_starting_policy(tmp_path):
+    """Each iteration's record (contexts, seeds, outcomes, settings) replayed on the starting policy gives the
+    run's weights exactly; a missing iteration is named."""
+    from omegaconf import OmegaConf
+
+    torch.manual_seed(0)
+    start = Tiny()
+    run = copy.deepcopy(start)
+    rl = OmegaConf.create({"es_sigma": 0.1, "es_step": 0.2, "es_top": None, "es_discount": 1.0, "es_parameters": "mean"})
+    g = torch.Generator().manual_seed(3)
+    for it in (1, 2, 3):
+        seeds = torch.randint(2**62, (2,), generator=g).tolist()
+        success = torch.rand(5, 4, generator=g) < 0.5
+        steps = torch.randint(1, 40, (5, 4), generator=g)
+        returns = es.member_returns(success, steps)
+        es.ars_update(run, seeds, returns, rl.es_step, rl.es_top, rl.es_parameters)
+        es.write_ledger_entry(tmp_path, it, [it, it + 1], seeds, success, steps, returns, rl)
+    entries = es.read_ledger(tmp_path)
+    assert [e["iteration"] for e in entries] == [1, 2, 3] and len(entries[0]["success"]) == 5
+    rebuilt = es.replay_ledger(copy.deepcopy(start), entries)
+    assert all(p.equal(q) for p, q in zip(rebuilt.parameters(), run.parameters()))
+    assert not all(p.equal(q) for p, q in zip(es.replay_ledger(copy.deepcopy(start), entries, 2).parameters(),
+                                              run.parameters()))
+    (tmp_path / "iter_0002.json").unlink()
+    with pytest.raises(ValueError, match="iteration 2 is missing"):
+        es.read_ledger(tmp_path)

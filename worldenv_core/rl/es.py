@@ -1,0 +1,154 @@
+"""Exploration in weight space: antithetic evolution strategies (ARS) with the true reward.
+
+Why this update exists (docs/post_training.md#evolution-strategies-in-weight-space): LOOP explores by
+drawing each executed action from Laplace(mu, e^beta). For this project's policy that noise is white, a
+few hundredths of the action's spread per step, and the next chunk's closed loop corrects most of it, so
+whether a rollout succeeds barely depends on which noise was drawn: the policy gradient measured as noise
+at every batch the real route affords (results/rl_campaign.md). Here a rollout's *weights* are
+perturbed once and it then acts with its mean actions: the change is systematic, the same in every
+state of the episode and in every start, and an iteration compares whole behaviours on the same
+contexts. The update is Augmented Random Search (Mania et al. 2018, V1-t without state normalisation):
+
+    theta += step / (b sigma_R) * sum over the b best pairs of (R(+k) - R(-k)) n_k
+
+where the pair k's members are theta +- sigma n_k, n_k ~ N(0, I) scaled per tensor by that tensor's
+RMS (so sigma is a relative size), R a member's mean return over the iteration's contexts (every
+member sees the same contexts: their difficulty cancels in the difference), sigma_R the spread of the
+2b returns used. A direction is named by its seed: any process rebuilds a member from the base weights
+and (seed, signed sigma), so workers load one checkpoint per iteration and a run's weights follow from
+its starting policy and the seeds it drew.
+"""
+
+from __future__ import annotations
+
+import torch
+
+PARAMETER_SETS = ("mean", "heads")  # which weights move: every one the mean action reads, or trunk + action head
+RMS_FLOOR = 1e-3  # a tensor initialised at zero (a bias) still explores
+
+
+def es_parameters(policy: torch.nn.Module, which: str = "mean") -> list[tuple[str, torch.nn.Parameter]]:
+    """The perturbed parameters, in a fixed order. mean: all but the scale head (members act with their
+    mean actions, so the scale is never read); heads: the trunk and the action head only."""
+    if which not in PARAMETER_SETS:
+        raise ValueError(f"rl.es_parameters must be one of {list(PARAMETER_SETS)}, got {which!r}")
+    out = []
+    for name, p in policy.named_parameters():
+        if name.startswith("scale_head."):
+            continue
+        if which == "heads" and not name.startswith(("trunk.", "action_head.")):
+            continue
+        out.append((name, p))
+    if not out:
+        raise ValueError(f"the policy has no parameter in the set {which!r}")
+    return out
+
+
+def directions(policy: torch.nn.Module, seed: int, which: str = "mean") -> list[torch.Tensor]:
+    """The direction named by `seed`: one N(0, 1) draw per parameter element, each tensor scaled by its
+    own RMS (floored), drawn in `es_parameters` order from one generator."""
+    g = torch.Generator().manual_seed(int(seed))
+    out = []
+    for _, p in es_parameters(policy, which):
+        rms = p.detach().float().pow(2).mean().sqrt().clamp_min(RMS_FLOOR)
+        out.append(torch.randn(p.shape, generator=g) * rms)
+    return out
+
+
+@torch.no_grad()
+def perturb(policy: torch.nn.Module, seed: int, coef: float, which: str = "mean") -> torch.nn.Module:
+    """In place: theta += coef * direction(seed). Returns the policy. The direction is computed from the
+    weights as they are before the move, so a member is rebuilt exactly from its base and (seed, coef)."""
+    params = es_parameters(policy, which)
+    for (_, p), d in zip(params, directions(policy, seed, which)):
+        p.add_(d.to(p.device, p.dtype), alpha=float(coef))
+    return policy
+
+
+def antithetic_members(seeds: list[int], sigma: float) -> list[tuple[int, float]]:
+    """[(seed, +sigma), (seed, -sigma)] for each seed: member 2k and 2k+1 are pair k."""
+    if not sigma > 0:
+        raise ValueError(f"rl.es_sigma must be > 0, got {sigma}")
+    return [(int(s), sign * float(sigma)) for s in seeds for sign in (1.0, -1.0)]
+
+
+def member_returns(success: torch.Tensor, steps: torch.Tensor, discount: float = 1.0) -> torch.Tensor:
+    """(contexts, members) outcomes -> each member's mean return over the contexts: discount**steps for a
+    success (1 with discount 1: the benchmark's success), 0 for a failure."""
+    if not 0 < discount <= 1:
+        raise ValueError(f"rl.es_discount must be in (0, 1], got {discount}")
+    ret = success.float() * torch.as_tensor(discount, dtype=torch.float64).pow(steps.double()).float()
+    return ret.mean(0)
+
+
+@torch.no_grad()
+def ars_update(policy: torch.nn.Module, seeds: list[int], returns: torch.Tensor, step: float, top: int | None = None,
+               which: str = "mean") -> dict:
+    """One ARS step from the members' returns (2 per seed, + then -, as `antithetic_members` orders
+    them). `top`: use the b pairs whose better member did best (ARS V1-t); None: every pair. No step
+    when the returns used do not differ (nothing to follow). -> figures of the step."""
+    if not step > 0:
+        raise ValueError(f"rl.es_step must be > 0, got {step}")
+    r = returns.view(len(seeds), 2).float()
+    b = len(seeds) if top is None else max(1, min(int(top), len(seeds)))
+    best = r.max(1).values.argsort(descending=True, stable=True)[:b]
+    used = r[best]
+    sigma_r = float(used.flatten().std(unbiased=False))
+    diff = used[:, 0] - used[:, 1]
+    stats = {"es_pairs": float(len(seeds)), "es_pairs_used": float(b), "es_return_std": sigma_r,
+             "es_member_best": float(r.max()), "es_member_worst": float(r.min()),
+             "es_pair_diff_abs": float(diff.abs().mean())}
+    if sigma_r == 0.0:
+        return {**stats, "es_step_rms": 0.0}
+    params = es_parameters(policy, which)
+    total = [torch.zeros_like(p) for _, p in params]
+    for k, w in zip(best.tolist(), (diff / (b * sigma_r)).tolist()):
+        for acc, d in zip(total, directions(policy, seeds[k], which)):
+            acc.add_(d.to(acc.device, acc.dtype), alpha=w)
+    moved = sq = 0.0
+    for (_, p), acc in zip(params, total):
+        rms = p.detach().float().pow(2).mean().sqrt().clamp_min(RMS_FLOOR)
+        p.add_(acc, alpha=float(step))
+        sq += float((acc * step / rms).pow(2).sum())
+        moved += acc.numel()
+    return {**stats, "es_step_rms": (sq / moved) ** 0.5}  # the step's size relative to each tensor's RMS
+
+
+LEDGER_SETTINGS = ("es_sigma", "es_step", "es_top", "es_discount", "es_parameters")
+
+
+def write_ledger_entry(folder, iteration: int, contexts: list[int], seeds: list[int], success: torch.Tensor,
+                       steps: torch.Tensor, returns: torch.Tensor, rl) -> None:
+    """One iteration's record (whole or absent): its contexts, directions, every member's outcome from every
+    context (contexts x members) and the settings of its step, enough to redo the step (`replay_ledger`)."""
+    import json
+    from pathlib import Path
+
+    from worldenv_core.files import write_text_atomic
+
+    entry = {"iteration": int(iteration), "contexts": [int(c) for c in contexts], "seeds": [int(s) for s in seeds],
+             "success": success.int().tolist(), "steps": steps.int().tolist(), "returns": returns.tolist(),
+             **{k: rl.get(k) for k in LEDGER_SETTINGS}}
+    Path(folder).mkdir(parents=True, exist_ok=True)
+    write_text_atomic(Path(folder) / f"iter_{int(iteration):04d}.json", json.dumps(entry))
+
+
+def read_ledger(folder) -> list[dict]:
+    """A ledger's entries in iteration order; a gap (an iteration missing) is an error."""
+    import json
+    from pathlib import Path
+
+    entries = [json.loads(p.read_text()) for p in sorted(Path(folder).glob("iter_*.json"))]
+    for i, e in enumerate(entries, 1):
+        if e["iteration"] != i:
+            raise ValueError(f"{folder}: iteration {i} is missing from the ledger (found {e['iteration']})")
+    return entries
+
+
+@torch.no_grad()
+def replay_ledger(policy: torch.nn.Module, entries: list[dict], upto: int | None = None) -> torch.nn.Module:
+    """The starting policy moved by the ledger's steps (in place), iterations 1..upto: the run's weights
+    rebuilt from a few kilobytes, on any machine that has the starting policy."""
+    for e in entries[:upto]:
+        ars_update(policy, e["seeds"], torch.tensor(e["returns"]), e["es_step"], e["es_top"], e["es_parameters"])
+    return policy
