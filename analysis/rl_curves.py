@@ -46,7 +46,7 @@ def summarise(history: list[dict], rollouts_per_iteration: int) -> dict:
     val_n = [h.get("validation_episodes", 0) for h in history if "validation_success" in h]
     series = {k: [(h["step"], h[k]) for h in steps if k in h]
               for k in ("mean_reward", "kept_groups", "exact_kl", "action_shift_rms", "direction_cosine", "ppo_steps",
-                        "first_step_kl")}
+                        "first_step_kl", "es_pair_diff_abs", "es_return_std", "es_step_rms")}
     wall = sum(h.get("seconds", 0.0) for h in steps)
     episodes = len(steps) * rollouts_per_iteration
     parts = {p: sum(h.get(f"rollout_{p}_seconds", 0.0) for h in steps) for p in PARTS}
@@ -74,11 +74,13 @@ def plot(runs: dict[str, dict], path: str | Path, title: str = "") -> Path:
     """Validation success against real RL episodes, and the per-iteration diagnostics, one line per run."""
     from worldenv_core.viz import figure, save_figure
 
-    fig, axes = figure(2, 2, figsize=(11, 7.5), squeeze=False)
+    fig, axes = figure(2, 3, figsize=(15, 7.5), squeeze=False)
     panels = [("validation success (fixed fresh placements)", "validation", "real RL episodes consumed"),
               ("training rollouts' success (diagnostic)", "mean_reward", "iteration"),
-              ("exact KL per update", "exact_kl", "iteration"),
-              ("direction cosine (even vs odd groups)", "direction_cosine", "iteration")]
+              ("exact KL per update (PPO)", "exact_kl", "iteration"),
+              ("direction cosine (even vs odd groups, PPO)", "direction_cosine", "iteration"),
+              ("weight-space members: mean |R+ - R-| per pair (ES)", "es_pair_diff_abs", "iteration"),
+              ("RMS change of the mean action (PPO)", "action_shift_rms", "iteration")]
     for ax, (name, key, xlabel) in zip(axes.flat, panels):
         for label, s in runs.items():
             pts = s.get(key) or []
@@ -93,7 +95,7 @@ def plot(runs: dict[str, dict], path: str | Path, title: str = "") -> Path:
         ax.set_xlabel(xlabel)
         ax.grid(alpha=0.3)
     axes[0, 0].legend(fontsize=8)
-    axes[1, 1].axhline(0.0, color="grey", lw=0.8)
+    axes[1, 0].axhline(0.0, color="grey", lw=0.8)
     if title:
         fig.suptitle(title)
     fig.tight_layout()
@@ -150,12 +152,14 @@ def main(argv=None) -> dict:
 
 
 def rollouts_of(work: str | Path) -> int:
-    """Rollouts per iteration of a run: contexts x N from the resolved config post_train_loop keeps
-    in its work dir (`run_config.json`)."""
+    """Rollouts per iteration of a run: contexts x N (ES: contexts x 2 x pairs) from the resolved config
+    post_train_loop keeps in its work dir (`run_config.json`)."""
     path = Path(work) / "run_config.json"
     if not path.exists():
         raise FileNotFoundError(f"{path} missing: pass --rollouts (contexts_per_iteration x n_rollouts)")
     rl = json.loads(path.read_text())["rl"]
+    if rl.get("policy_update") == "es":  # both members of each weight-space pair from every context
+        return int(rl["contexts_per_iteration"]) * 2 * int(rl["es_pairs"])
     return int(rl["contexts_per_iteration"]) * int(rl["n_rollouts"])
 
 

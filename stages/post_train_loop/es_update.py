@@ -10,15 +10,13 @@ import json
 import logging
 import shutil
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 import torch
 
-from stages.post_train_loop.training import draw_contexts
-from worldenv_core.envs.replay import RealStart
+from stages.post_train_loop.training import draw_contexts, placements
 from worldenv_core.errors import ConfigError
-from worldenv_core.models.checkpoint import save_model
+from worldenv_core.models.checkpoint import read_config, save_model
 from worldenv_core.rl import es
 from worldenv_core.rl.real_rollouts import collect_member_outcomes
 from worldenv_core.training import Phase, per_step, step_seed
@@ -27,23 +25,24 @@ from worldenv_core.training.checkpoints import Checkpoints
 log = logging.getLogger("worldenv.post_train_loop")
 
 
-def es_collector(contract, starts: list[RealStart] | Callable[[int], tuple[RealStart, str]], instructions: list[str],
-                 encode, horizon: int, model_config: dict, meta: dict, folder: Path, workers, progress: bool,
-                 which: str, keep: Path | None = None):
-    """(base policy, context numbers, members) -> every member's real outcome from every context
-    (`rl.policy_update=es`): the base saved once per iteration as `real_collector` saves its behaviour
-    policy, the members rebuilt from it in the workers, every finished rollout in the journal."""
-    count = itertools.count()
-    lookup = starts if callable(starts) else (lambda i: (starts[i], instructions[i]))
+def es_collector(cfg, contract, src, encode, policy_path: str, pmeta: dict, work: Path):
+    """(base policy, context numbers, members) -> every member's real outcome from every context: the base
+    saved once per iteration as the PPO route's collector saves its behaviour policy, the members rebuilt
+    from it in the workers, every finished rollout in the journal (`rl.keep_rollouts`: kept after)."""
+    rl = cfg.rl
+    starts = placements(contract) if rl.contexts == "placements" else src.starts
+    lookup = starts if callable(starts) else (lambda i: (src.starts[i], src.instructions[i]))
+    model_config, count = read_config(policy_path)["model"], itertools.count()
+    keep = work / "kept_rollouts" if rl.get("keep_rollouts") else None
 
     def collect(base, picks, members):
-        for old in folder.glob("behaviour_*"):
+        for old in work.glob("behaviour_*"):
             shutil.rmtree(old, ignore_errors=True)
-        path = save_model(folder / f"behaviour_{next(count)}", base, model_config, meta)
+        path = save_model(work / f"behaviour_{next(count)}", base, model_config, pmeta)
         chosen = [lookup(i) for i in picks]
         return collect_member_outcomes(path, contract, [st for st, _ in chosen], [i for _, i in chosen], members,
-                                       encode, horizon, which, workers=workers, progress=progress,
-                                       journal=folder / "rollout_journal", keep=keep)
+                                       encode, rl.horizon, rl.es_parameters, workers=cfg.eval.workers,
+                                       progress=cfg.progress, journal=work / "rollout_journal", keep=keep)
     return collect
 
 

@@ -31,7 +31,7 @@ from omegaconf import DictConfig
 from stages.post_train_loop.evaluation import (PairedCheck, imagined_success, real_success, record_imagined,
                                                validation_success, with_gap)
 from stages.post_train_loop.sweep import sweep_dir, write_summary
-from stages.post_train_loop.es_update import es_phase, seed_from_ledger
+from stages.post_train_loop.es_update import es_collector, es_phase, seed_from_ledger
 from stages.post_train_loop.training import (Rollouts, check_pack, collector, pack_contexts, paired_guard, rl_phase,
                                              rollouts)
 from worldenv_core.envs.tasks import contract_task_ids
@@ -220,7 +220,8 @@ def run(cfg: DictConfig) -> dict:
             work.mkdir(parents=True, exist_ok=True)
             write_text_atomic(work / "run_config.json", json.dumps(config, indent=1, default=str))
         optimizer = make_optimizer(policy, rl.optimizer, rl.lr_backbone, rl.lr_heads, rl.train_scale_head)
-        collect = collector(cfg, contract, src, encode, policy_path, pmeta, work)
+        collect = (es_collector(cfg, contract, src, encode, policy_path, pmeta, work) if rl.policy_update == "es"
+                   else collector(cfg, contract, src, encode, policy_path, pmeta, work))
         if cfg.minutes:  # planned from iterations timed on copies, so the run itself starts from the untouched policy
             rl.iterations = planned_total(work, cfg.minutes, lambda s: _time_iterations(policy, collect, src, rl, cfg, s))
         provenance = {"policy": policy_path, "worldsim": worldsim_path, "reflector": reflector_path}

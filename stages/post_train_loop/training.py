@@ -298,12 +298,6 @@ def collector(cfg: DictConfig, contract: TaskContract, src: Rollouts, encode, po
     if cfg.env != "real":
         return imagined_collector(src.env, src.contexts, rl.n_rollouts, encode, rl.noise_scale, rl.exploration)
     starts = placements(contract) if rl.contexts == "placements" else src.starts
-    if rl.policy_update == "es":
-        from stages.post_train_loop.es_update import es_collector
-
-        return es_collector(contract, starts, src.instructions, encode, rl.horizon, read_config(policy_path)["model"],
-                            pmeta, work, cfg.eval.workers, cfg.progress, rl.es_parameters,
-                            keep=work / "kept_rollouts" if rl.get("keep_rollouts") else None)
     return real_collector(contract, starts, src.instructions, rl.n_rollouts, encode, rl.horizon,
                           read_config(policy_path)["model"], pmeta, work, cfg.eval.workers, cfg.progress, rl.noise_scale,
                           keep=work / "kept_rollouts" if rl.get("keep_rollouts") else None, exploration=rl.exploration)

@@ -40,6 +40,10 @@ def test_the_cli_reads_a_work_dir_and_keeps_the_curve(tmp_path):
                  "--markdown", str(tmp_path / "c.md")])
     assert runs["a"]["real_rl_episodes"] == 512 and (tmp_path / "c.png").stat().st_size > 0
     assert json.loads((tmp_path / "kept" / "a.json").read_text())["validation"] == [[0, 0.5], [256, 0.6]]
+    # an ES run: both members of each pair from every context
+    (work / "run_config.json").write_text(json.dumps({"rl": {"contexts_per_iteration": 16, "n_rollouts": 8,
+                                                             "policy_update": "es", "es_pairs": 8}}))
+    assert main(["--run", f"es={work}"])["es"]["real_rl_episodes"] == 4 * 256
     with pytest.raises(FileNotFoundError, match="neither training.json nor a checkpoint"):
         read_history(tmp_path)
     with pytest.raises(SystemExit):

@@ -386,7 +386,7 @@ def test_filtered_bc_imitates_the_successes_kept_in_the_work_dir(trained):
     assert all("ppo_steps" not in h and h["exact_kl"] > 0 for h in steps) and metrics["iterations"] == 2
     work = Path(next(p for p in Manifest(exp).resolve(rec) if p.name == "training.json")).parent
     assert len(list((work / "success_buffer").glob("*.pt"))) == 2
-    for override, match in (("rl.policy_update=dpo", r"rl.policy_update must be one of \['ppo', 'filtered_bc'\]"),
+    for override, match in (("rl.policy_update=dpo", r"rl.policy_update must be one of \['ppo', 'filtered_bc', 'es'\]"),
                             ("rl.bc_steps=0", "rl.bc_steps")):
         with pytest.raises(ConfigError, match=match):
             post_train_loop(cfg("post_train_loop", exp, *LOOP, override))
