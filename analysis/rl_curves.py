@@ -39,8 +39,17 @@ def read_history(work: str | Path) -> list[dict]:
     return list(torch.load(last.resolve() / TRAIN_STATE, weights_only=False)["history"])
 
 
-def summarise(history: list[dict], rollouts_per_iteration: int) -> dict:
-    """Per-iteration series and the throughput of the iterations' rollouts."""
+def es_ledger(work: str | Path) -> list[dict]:
+    """An ES run's ledger (`es_ledger/iter_NNNN.json`; none for a PPO run)."""
+    from worldenv_core.rl.es import read_ledger
+
+    folder = Path(work) / "es_ledger"
+    return read_ledger(folder) if folder.is_dir() else []
+
+
+def summarise(history: list[dict], rollouts_per_iteration: int, ledger: list[dict] | None = None) -> dict:
+    """Per-iteration series and the throughput of the iterations' rollouts; with an ES run's `ledger`, whether
+    its directions' effects repeat on other starts (`es.half_agreement`, in the direction-cosine column)."""
     steps = [h for h in history if "mean_reward" in h]
     val = [(h["step"] * rollouts_per_iteration, h["validation_success"]) for h in history if "validation_success" in h]
     val_n = [h.get("validation_episodes", 0) for h in history if "validation_success" in h]
@@ -58,6 +67,12 @@ def summarise(history: list[dict], rollouts_per_iteration: int) -> dict:
     noise = [h["gradient_noise_sq"] for h in steps if "gradient_noise_sq" in h]
     pooled = (sum(sig) / len(sig), sum(noise) / len(noise)) if sig else None
     groups_needed = (0.81 / 0.19) * pooled[1] / pooled[0] if pooled and pooled[0] > 0 else None
+    if ledger:
+        from worldenv_core.rl.es import half_agreement
+
+        agree = half_agreement(ledger, ledger[0].get("es_discount") or 1.0)
+        series["direction_cosine"] = [(e["iteration"], c) for e, c in zip(ledger, agree["per_iteration"])]
+        series["es_half_cosine_pooled"] = agree["pooled"]
     return {"iterations": len(steps), "real_rl_episodes": episodes, "validation": val, "validation_episodes": val_n,
             **series,
             "gradient_signal": {"iterations": len(sig), "signal_sq": pooled[0] if pooled else None,
@@ -78,7 +93,7 @@ def plot(runs: dict[str, dict], path: str | Path, title: str = "") -> Path:
     panels = [("validation success (fixed fresh placements)", "validation", "real RL episodes consumed"),
               ("training rollouts' success (diagnostic)", "mean_reward", "iteration"),
               ("exact KL per update (PPO)", "exact_kl", "iteration"),
-              ("direction cosine (even vs odd groups, PPO)", "direction_cosine", "iteration"),
+              ("direction cosine (PPO: even vs odd groups; ES: even vs odd starts)", "direction_cosine", "iteration"),
               ("weight-space members: mean |R+ - R-| per pair (ES)", "es_pair_diff_abs", "iteration"),
               ("RMS change of the mean action (PPO)", "action_shift_rms", "iteration")]
     for ax, (name, key, xlabel) in zip(axes.flat, panels):
@@ -136,7 +151,7 @@ def main(argv=None) -> dict:
         if "=" not in spec:
             ap.error(f"--run wants NAME=WORKDIR, got {spec!r}")
         name, work = spec.split("=", 1)
-        runs[name] = summarise(read_history(work), args.rollouts or rollouts_of(work))
+        runs[name] = summarise(read_history(work), args.rollouts or rollouts_of(work), es_ledger(work))
     if args.json:
         args.json.mkdir(parents=True, exist_ok=True)
         for name, s in runs.items():

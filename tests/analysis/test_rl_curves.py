@@ -43,7 +43,15 @@ def test_the_cli_reads_a_work_dir_and_keeps_the_curve(tmp_path):
     # an ES run: both members of each pair from every context
     (work / "run_config.json").write_text(json.dumps({"rl": {"contexts_per_iteration": 16, "n_rollouts": 8,
                                                              "policy_update": "es", "es_pairs": 8}}))
-    assert main(["--run", f"es={work}"])["es"]["real_rl_episodes"] == 4 * 256
+    (work / "es_ledger").mkdir()  # its ledger: each iteration's pair differences on even against odd starts
+    for it, flip in ((1, 1), (2, 0)):
+        success = [[1, 0, 1, 0], [1, 0, 0, 1], [1, 0, 1, 0], [1, 0, flip, 1 - flip]]  # 4 starts x 2 pairs
+        (work / "es_ledger" / f"iter_{it:04d}.json").write_text(json.dumps(
+            {"iteration": it, "success": success, "steps": [[1] * 4] * 4, "es_discount": 1.0}))
+    es_run = main(["--run", f"es={work}"])["es"]
+    assert es_run["real_rl_episodes"] == 4 * 256
+    assert es_run["direction_cosine"] == [(1, pytest.approx(1 / 2 ** 0.5)), (2, 0.0)]  # d_even (1, 1); d_odd (1, 0), (1, -1)
+    assert es_run["es_half_cosine_pooled"] == pytest.approx(1 / 12 ** 0.5)
     with pytest.raises(FileNotFoundError, match="neither training.json nor a checkpoint"):
         read_history(tmp_path)
     with pytest.raises(SystemExit):

@@ -152,3 +152,20 @@ def replay_ledger(policy: torch.nn.Module, entries: list[dict], upto: int | None
     for e in entries[:upto]:
         ars_update(policy, e["seeds"], torch.tensor(e["returns"]), e["es_step"], e["es_top"], e["es_parameters"])
     return policy
+
+
+def half_agreement(entries: list[dict], discount: float = 1.0) -> dict:
+    """Does a direction's measured effect repeat on other starts? Each ledger entry's pair differences
+    R(+k) - R(-k) on its even-numbered contexts against those on its odd ones: their cosine per iteration
+    and pooled over the entries (about 0 where the pairs' differences are the starts' noise, toward 1 where
+    the weight-space directions carry a signal), the counterpart of PPO's even/odd gradient cosine."""
+    per, dots, sq_even, sq_odd = [], 0.0, 0.0, 0.0
+    for e in entries:
+        success, steps = torch.tensor(e["success"]), torch.tensor(e["steps"])
+        halves = [member_returns(success[h::2], steps[h::2], discount).view(-1, 2) for h in (0, 1)]
+        d_even, d_odd = (r[:, 0] - r[:, 1] for r in halves)
+        dot, a, b = float(d_even @ d_odd), float(d_even @ d_even), float(d_odd @ d_odd)
+        per.append(dot / (a * b) ** 0.5 if a * b > 0 else float("nan"))
+        dots, sq_even, sq_odd = dots + dot, sq_even + a, sq_odd + b
+    pooled = dots / (sq_even * sq_odd) ** 0.5 if sq_even * sq_odd > 0 else float("nan")
+    return {"per_iteration": per, "pooled": pooled, "iterations": len(entries)}

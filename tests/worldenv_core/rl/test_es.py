@@ -117,3 +117,20 @@ def test_the_ledger_rebuilds_the_runs_weights_from_the_starting_policy(tmp_path)
     (tmp_path / "iter_0002.json").unlink()
     with pytest.raises(ValueError, match="iteration 2 is missing"):
         es.read_ledger(tmp_path)
+
+
+def test_half_agreement_is_high_where_directions_matter_and_near_zero_where_they_do_not():
+    """Simulated ledgers: pairs whose members truly differ agree between the even and the odd starts; pairs
+    whose outcomes are coin flips do not (pooled over many iterations)."""
+    g = torch.Generator().manual_seed(0)
+
+    def ledger(effect: float) -> list[dict]:
+        out = []
+        for _ in range(40):
+            p = 0.5 + effect * torch.randn(4, generator=g).clamp(-1.5, 1.5)  # pair k's members: p_k and 1 - p_k
+            probs = torch.stack([p, 1 - p], 1).flatten()
+            success = torch.rand(32, 8, generator=g) < probs[None]
+            out.append({"success": success.int().tolist(), "steps": torch.ones(32, 8).int().tolist()})
+        return out
+    signal, noise = es.half_agreement(ledger(0.25)), es.half_agreement(ledger(0.0))
+    assert signal["pooled"] > 0.6 and abs(noise["pooled"]) < 0.2 and len(signal["per_iteration"]) == 40
