@@ -84,11 +84,15 @@ def seed_from_ledger(work: Path, ledger_from: str | Path, policy, optimizers: di
     ledger (`iter_NNNN.json`, `es.replay_ledger`) is checkpointed at its last iteration, with the run's history
     as far as the folder's `history.json` holds it, so the same command continues the run from there (a
     campaign's ledger kept in the repository outlives a machine's `outputs/`). The ledger's settings must be
-    this run's. -> the iteration it starts from (0: the work dir had a checkpoint, nothing seeded)."""
+    this run's; a folder that does not exist yet (the campaign's first sitting) seeds nothing. -> the iteration
+    it starts from (0: nothing seeded)."""
     checkpoints = Checkpoints(work)
     if checkpoints.last is not None:
         return 0
     folder = Path(ledger_from)
+    if not folder.exists():  # a campaign's first sitting: the command names where its ledger will be kept
+        log.warning("rl.es_ledger_from=%s does not exist yet: the run starts from the starting policy", folder)
+        return 0
     try:
         entries = es.read_ledger(folder)
     except (OSError, ValueError, KeyError) as e:

@@ -424,7 +424,7 @@ def test_evolution_strategies_in_weight_space_on_real_rollouts(trained):
     exp, _ = trained
     es_args = [*LOOP, "env=real", "rl=es", "rl.iterations=1", "rl.contexts_per_iteration=2", "rl.es_pairs=2",
                "rl.horizon=16", "eval.every=0", "rl.keep_rollouts=true"]
-    metrics = post_train_loop(cfg("post_train_loop", exp, *es_args))
+    metrics = post_train_loop(cfg("post_train_loop", exp, *es_args, f"rl.es_ledger_from={exp}/kept_ledger"))  # none yet
     assert metrics["contexts"] == "fresh placements" and metrics["train_real_episodes"] == 2 * 2 * 2
     rec = Manifest(exp).latest("post_train_loop", task="tiny", env="real")
     history = json.loads(Path(next(p for p in Manifest(exp).resolve(rec) if p.name == "training.json")).read_text())
