@@ -26,10 +26,14 @@ log = logging.getLogger("worldenv.post_train_loop")
 
 
 def es_collector(cfg, contract, src, encode, policy_path: str, pmeta: dict, work: Path):
-    """(base policy, context numbers, members) -> every member's real outcome from every context: the base
+    """(base policy, context numbers, members) -> every member's outcome from every context. Real: the base
     saved once per iteration as the PPO route's collector saves its behaviour policy, the members rebuilt
-    from it in the workers, every finished rollout in the journal (`rl.keep_rollouts`: kept after)."""
+    from it in the workers, every finished rollout in the journal (`rl.keep_rollouts`: kept after).
+    Imagined: all members' rollouts together through the world model, the reflector's verdict as success."""
     rl = cfg.rl
+    if cfg.env != "real":
+        return lambda base, picks, members: es.imagined_member_outcomes(
+            base, src.env, [src.contexts[i] for i in picks], members, encode, rl.es_parameters)
     starts = placements(contract) if rl.contexts == "placements" else src.starts
     lookup = starts if callable(starts) else (lambda i: (src.starts[i], src.instructions[i]))
     model_config, count = read_config(policy_path)["model"], itertools.count()
@@ -46,13 +50,16 @@ def es_collector(cfg, contract, src, encode, policy_path: str, pmeta: dict, work
     return collect
 
 
-def es_phase(policy, collect, n_contexts: int | None, rl, seed: int, ledger: Path | None = None) -> Phase:
+def es_phase(policy, collect, n_contexts: int | None, rl, seed: int, ledger: Path | None = None,
+             guard=None) -> Phase:
     """`rl.policy_update=es`: one iteration = `rl.es_pairs` antithetic weight-space members (`worldenv_core.rl.es`),
     each acting with its mean actions from the same `rl.contexts_per_iteration` contexts, then one ARS step.
     Contexts and directions are the iteration's generator's draws, so a resumed iteration runs the same
     members from the same starts (and takes its journal's finished rollouts back). `ledger`: a folder that
     keeps each iteration's contexts, seeds and outcomes (`iter_NNNN.json`): with the starting policy, all
-    that the run's weights follow from (`es.replay_ledger`)."""
+    that the run's weights follow from (`es.replay_ledger`). `guard` (`training.paired_guard`, the imagined
+    route): a step after which the policy's imagined successes fail for real beyond `rl.guard_max_hack_rate`
+    is undone, and the ledger says so."""
     def step(item) -> dict:
         it, g = item
         t0 = time.perf_counter()
@@ -62,10 +69,21 @@ def es_phase(policy, collect, n_contexts: int | None, rl, seed: int, ledger: Pat
         out = collect(copy.deepcopy(policy).eval(), picks, members)
         returns = es.member_returns(out["success"], out["steps"], rl.es_discount)
         t_update = time.perf_counter()
+        before = [p.detach().clone() for _, p in es.es_parameters(policy, rl.es_parameters)] if guard else None
         stats = es.ars_update(policy, seeds, returns, rl.es_step, rl.get("es_top"), rl.es_parameters)
         stats["update_seconds"] = time.perf_counter() - t_update
+        if guard is not None and stats["es_step_rms"] > 0:
+            stats.update(guard(policy))
+            if stats["guard_hack_rate"] > rl.guard_max_hack_rate:  # NaN (no imagined success) passes
+                with torch.no_grad():
+                    for (_, p), old in zip(es.es_parameters(policy, rl.es_parameters), before):
+                        p.copy_(old)
+                stats["rolled_back"] = 1.0
+                log.info("ES step undone: the guard's hack rate %.2f is above %.2f", stats["guard_hack_rate"],
+                         rl.guard_max_hack_rate)
         if ledger is not None:
-            es.write_ledger_entry(ledger, it + 1, picks, seeds, out["success"], out["steps"], returns, rl)
+            es.write_ledger_entry(ledger, it + 1, picks, seeds, out["success"], out["steps"], returns, rl,
+                                  rolled_back=bool(stats.get("rolled_back")))
         stats.update({f"rollout_{k}_seconds": v for k, v in out["timing"].items()})
         success = out["success"].float()
         return {"mean_reward": float(success.mean()), "reflector_success_rate": float(success.mean()),
@@ -111,7 +129,7 @@ def seed_from_ledger(work: Path, ledger_from: str | Path, policy, optimizers: di
     es.replay_ledger(policy, entries, done)
     for e in entries[:done]:
         es.write_ledger_entry(work / "es_ledger", e["iteration"], e["contexts"], e["seeds"], torch.tensor(e["success"]),
-                              torch.tensor(e["steps"]), torch.tensor(e["returns"]), rl)
+                              torch.tensor(e["steps"]), torch.tensor(e["returns"]), rl, e.get("rolled_back", False))
     history = json.loads((folder / "history.json").read_text()) if (folder / "history.json").exists() else []
     history = [h for h in history if h.get("step", 0) <= done]
     evaluated = sorted({int(h["step"]) for h in history if "validation_success" in h or "real_success" in h})

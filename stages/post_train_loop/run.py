@@ -243,9 +243,9 @@ def run(cfg: DictConfig) -> dict:
                  "oracle" if real else f"{src.eta:.2f}", device, work)
         evaluate = evaluator(cfg, contract, src, policy, policy_path, encode, trainer, work, packed, provenance)
         buffer = SuccessBuffer(work / "success_buffer") if rl.policy_update == "filtered_bc" else None  # kept: the data
-        phase = (es_phase(policy, collect, src.n_contexts, rl, cfg.seed, work / "es_ledger") if rl.policy_update == "es" else
-                 rl_phase(policy, optimizer, collect, src.n_contexts, rl, cfg.seed, paired_guard(cfg, contract, src, encode),
-                          buffer, value))
+        guard = paired_guard(cfg, contract, src, encode)
+        phase = (es_phase(policy, collect, src.n_contexts, rl, cfg.seed, work / "es_ledger", guard) if rl.policy_update == "es" else
+                 rl_phase(policy, optimizer, collect, src.n_contexts, rl, cfg.seed, guard, buffer, value))
         trainer.fit([phase], evaluate=evaluate,
                     evaluate_every=cfg.eval.every, deadline=deadline)
         for journal in (work / "rollout_journal").glob("*"):  # every iteration it kept is checkpointed now
@@ -265,12 +265,13 @@ def run(cfg: DictConfig) -> dict:
 
 
 def validate_es(cfg: DictConfig) -> None:
-    """rl.policy_update=es: the members act in the real simulator (the imagined route's members are not built
-    yet), with sizes that make a step."""
+    """rl.policy_update=es: sizes that make a step; in imagination, one process (the members' rollouts are
+    one batch through the world model)."""
     from worldenv_core.rl.es import PARAMETER_SETS
 
-    if cfg.env != "real":
-        raise ConfigError("rl.policy_update=es runs its weight-space members in the real simulator: it needs env=real")
+    if launched() > 1:
+        raise ConfigError(f"rl.policy_update=es runs in one process (its members share one batch), but torchrun "
+                          f"launched {launched()}")
     positive_int(cfg, "rl.es_pairs")
     for key in ("es_sigma", "es_step"):
         if not cfg.rl[key] > 0:

@@ -118,9 +118,10 @@ LEDGER_SETTINGS = ("es_sigma", "es_step", "es_top", "es_discount", "es_parameter
 
 
 def write_ledger_entry(folder, iteration: int, contexts: list[int], seeds: list[int], success: torch.Tensor,
-                       steps: torch.Tensor, returns: torch.Tensor, rl) -> None:
+                       steps: torch.Tensor, returns: torch.Tensor, rl, rolled_back: bool = False) -> None:
     """One iteration's record (whole or absent): its contexts, directions, every member's outcome from every
-    context (contexts x members) and the settings of its step, enough to redo the step (`replay_ledger`)."""
+    context (contexts x members) and the settings of its step, enough to redo the step (`replay_ledger`);
+    `rolled_back`: the step was made and undone (the paired-replay guard), so a replay skips it."""
     import json
     from pathlib import Path
 
@@ -128,7 +129,7 @@ def write_ledger_entry(folder, iteration: int, contexts: list[int], seeds: list[
 
     entry = {"iteration": int(iteration), "contexts": [int(c) for c in contexts], "seeds": [int(s) for s in seeds],
              "success": success.int().tolist(), "steps": steps.int().tolist(), "returns": returns.tolist(),
-             **{k: rl.get(k) for k in LEDGER_SETTINGS}}
+             **{k: rl.get(k) for k in LEDGER_SETTINGS}, **({"rolled_back": True} if rolled_back else {})}
     Path(folder).mkdir(parents=True, exist_ok=True)
     write_text_atomic(Path(folder) / f"iter_{int(iteration):04d}.json", json.dumps(entry))
 
@@ -150,6 +151,8 @@ def replay_ledger(policy: torch.nn.Module, entries: list[dict], upto: int | None
     """The starting policy moved by the ledger's steps (in place), iterations 1..upto: the run's weights
     rebuilt from a few kilobytes, on any machine that has the starting policy."""
     for e in entries[:upto]:
+        if e.get("rolled_back"):  # made, then undone by the guard
+            continue
         ars_update(policy, e["seeds"], torch.tensor(e["returns"]), e["es_step"], e["es_top"], e["es_parameters"])
     return policy
 
@@ -169,3 +172,32 @@ def half_agreement(entries: list[dict], discount: float = 1.0) -> dict:
         dots, sq_even, sq_odd = dots + dot, sq_even + a, sq_odd + b
     pooled = dots / (sq_even * sq_odd) ** 0.5 if sq_even * sq_odd > 0 else float("nan")
     return {"per_iteration": per, "pooled": pooled, "iterations": len(entries)}
+
+
+@torch.no_grad()
+def imagined_member_outcomes(policy: torch.nn.Module, env, contexts: list, members: list[tuple[int, float]],
+                             encoder, which: str = "mean") -> dict:
+    """Every member (`antithetic_members`: `policy` moved by (seed, coef)) from every context in the imagined
+    environment (`ImaginedEnv`: the world simulator, the reflector's verdict as the reward), with its mean
+    actions. All members x contexts rollouts advance together through the world model, a chunk at a time;
+    each member's policy reads only its own rows. -> success (the verdict) and steps, (contexts, members)."""
+    import copy
+    import time
+
+    t0 = time.perf_counter()
+    built = [perturb(copy.deepcopy(policy).eval(), seed, coef, which) for seed, coef in members]
+    n = len(contexts)
+    state = env.reset([c for _ in members for c in contexts])  # member-major: member m owns rows m*n..(m+1)*n-1
+    lang = encoder([c.instruction for _ in members for c in contexts]).to(state.frames.device)
+    camera, t_policy = policy.cameras[0], 0.0
+    while not state.done.all():
+        t1 = time.perf_counter()
+        mu = torch.cat([member({camera: state.frames[m * n:(m + 1) * n]}, state.proprio[m * n:(m + 1) * n],
+                               lang[m * n:(m + 1) * n])[0] for m, member in enumerate(built)])
+        t_policy += time.perf_counter() - t1
+        state = env.step(policy.unnormalize_actions(mu))
+    shape = (len(members), n)
+    total = time.perf_counter() - t0
+    return {"success": state.by_reflector.cpu().view(shape).T, "steps": state.t.cpu().view(shape).T,
+            "episodes": 0, "errors": 0,  # imagined: no real episode
+            "timing": {"policy": t_policy, "imagination": total - t_policy}}

@@ -417,9 +417,9 @@ def test_per_chunk_advantages_from_a_critic_fitted_to_the_earlier_iterations(tra
             post_train_loop(cfg("post_train_loop", exp, *LOOP, "rl.advantages=gae", override))
 
 
-def test_evolution_strategies_in_weight_space_on_real_rollouts(trained):
+def test_evolution_strategies_in_weight_space_on_real_and_imagined_rollouts(trained):
     """rl.policy_update=es: antithetic weight-space members act with their mean actions from the same fresh
-    placements, every episode counted; the step is ARS's, made in the weights the mean reads (the scale head
+    placements, every episode counted (or, imagined, from collected episodes' starts in the world model); the step is ARS's, made in the weights the mean reads (the scale head
     untouched), and a resumed run takes the journal's rollouts back. Bad settings are named first."""
     exp, _ = trained
     es_args = [*LOOP, "env=real", "rl=es", "rl.iterations=1", "rl.contexts_per_iteration=2", "rl.es_pairs=2",
@@ -462,5 +462,16 @@ def test_evolution_strategies_in_weight_space_on_real_rollouts(trained):
                             ("rl.es_parameters=all", "rl.es_parameters must be one of")):
         with pytest.raises(ConfigError, match=match):
             post_train_loop(cfg("post_train_loop", exp, *es_args, override))
-    with pytest.raises(ConfigError, match="rl.policy_update=es .* needs env=real"):
-        post_train_loop(cfg("post_train_loop", exp, *LOOP, "rl.policy_update=es"))
+    # the imagined route: the members' rollouts as one batch through the world model, the reflector's verdict
+    # as success, no real episode spent on training
+    imagined = post_train_loop(cfg("post_train_loop", exp, *LOOP, "rl.policy_update=es", "rl.iterations=1",
+                                   "rl.es_pairs=2", "rl.contexts_per_iteration=2", "eval.every=0"))
+    assert imagined["train_real_episodes"] == 0 and imagined["iterations"] == 1
+    rec3 = Manifest(exp).latest("post_train_loop", task="tiny", env="imagined")
+    work3 = Path(next(p for p in Manifest(exp).resolve(rec3) if p.name == "training.json")).parent
+    (entry3,) = es.read_ledger(work3 / "es_ledger")
+    assert len(entry3["success"]) == 2 and len(entry3["success"][0]) == 4
+    step3 = next(h for h in json.loads((work3 / "training.json").read_text()) if "es_pairs" in h)
+    assert step3["train_episodes"] == 0 and step3["rollout_imagination_seconds"] > 0
+    with pytest.raises(ConfigError, match="rl.contexts=placements draws fresh scenes in the real simulator"):
+        post_train_loop(cfg("post_train_loop", exp, *LOOP, "rl=es"))

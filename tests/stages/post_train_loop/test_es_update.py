@@ -1,0 +1,55 @@
+"""The weight-space update's iteration (no simulator): members' rollouts in an imagined environment whose
+verdict is known, the ARS step, and the paired-replay guard undoing a step (and the ledger saying so)."""
+import copy
+
+import torch
+from omegaconf import OmegaConf
+
+from stages.post_train_loop.es_update import es_phase
+from tests.worldenv_core.rl.test_loop import ActionRewardEnv, _policy_and_contexts
+from worldenv_core.rl import es
+
+
+class VerdictEnv(ActionRewardEnv):
+    """ActionRewardEnv whose verdict is a success where at least half of a rollout's x-actions were > 0."""
+
+    def step(self, actions, generator=None):
+        state = super().step(actions, generator)
+        state.by_reflector = state.done & (state.reward >= 0.5)
+        return state
+
+
+RL = {"iterations": 1, "contexts_per_iteration": 4, "es_pairs": 3, "es_sigma": 0.5, "es_step": 0.5, "es_top": None,
+      "es_discount": 1.0, "es_parameters": "mean", "guard_max_hack_rate": 0.5}
+
+
+def test_each_member_acts_with_its_own_weights_in_one_batch_through_the_imagined_env():
+    policy, contexts, encoder = _policy_and_contexts(3)
+    members = es.antithetic_members([11, 12], 0.5)
+    out = es.imagined_member_outcomes(policy, VerdictEnv(), contexts, members, encoder)
+    assert out["success"].shape == out["steps"].shape == (3, 4) and out["episodes"] == 0
+    for m, (seed, coef) in enumerate(members):  # the same member alone, in a batch of its own
+        alone = es.imagined_member_outcomes(es.perturb(copy.deepcopy(policy), seed, coef), VerdictEnv(), contexts,
+                                            [(seed, 0.0)], encoder)
+        assert torch.equal(alone["success"][:, 0], out["success"][:, m])
+    assert 0 < out["success"].float().mean() < 1  # the members differ: something for the step to follow
+
+
+def test_the_guard_undoes_a_step_and_the_ledger_replays_without_it(tmp_path):
+    rl = OmegaConf.create(RL)
+    for hack_rate, undone in ((1.0, True), (0.0, False)):
+        policy, contexts, encoder = _policy_and_contexts(4)
+        start = copy.deepcopy(policy)
+        collect = lambda base, picks, members: es.imagined_member_outcomes(  # noqa: E731
+            base, VerdictEnv(), [contexts[i] for i in picks], members, encoder)
+        ledger = tmp_path / f"ledger_{undone}"
+        phase = es_phase(policy, collect, 4, rl, 0, ledger, guard=lambda p: {"guard_hack_rate": hack_rate,
+                                                                            "guard_episodes": 2})
+        stats = phase.step(next(iter(phase.batches(0))))
+        assert stats["es_return_std"] > 0 and stats["guard_episodes"] == 2
+        same = all(a.equal(b) for a, b in zip(policy.parameters(), start.parameters()))
+        assert same == undone and stats.get("rolled_back", 0.0) == float(undone)
+        (entry,) = es.read_ledger(ledger)
+        assert entry.get("rolled_back", False) == undone
+        replayed = es.replay_ledger(copy.deepcopy(start), [entry])
+        assert all(a.equal(b) for a, b in zip(replayed.parameters(), policy.parameters()))
