@@ -25,8 +25,11 @@ PARTS = ("reset", "render", "policy", "physics", "env_build")
 
 
 def read_history(work: str | Path) -> list[dict]:
-    """A run's history: training.json when it finished, else its last checkpoint's."""
+    """A run's history: training.json when it finished, else its last checkpoint's; a kept ES ledger
+    folder (`es_update.export_ledger`): the history it was exported with."""
     work = Path(work)
+    if kept_ledger(work):
+        return json.loads((work / "history.json").read_text())
     if (work / "training.json").exists():
         return json.loads((work / "training.json").read_text())
     last = work / "checkpoints" / "last"
@@ -39,11 +42,17 @@ def read_history(work: str | Path) -> list[dict]:
     return list(torch.load(last.resolve() / TRAIN_STATE, weights_only=False)["history"])
 
 
+def kept_ledger(path: str | Path) -> bool:
+    """An exported ES ledger (a run's state kept in the repository) rather than a work dir."""
+    path = Path(path)
+    return (path / "history.json").exists() and any(path.glob("iter_*.json"))
+
+
 def es_ledger(work: str | Path) -> list[dict]:
-    """An ES run's ledger (`es_ledger/iter_NNNN.json`; none for a PPO run)."""
+    """An ES run's ledger (`es_ledger/iter_NNNN.json`, or a kept ledger folder itself; none for a PPO run)."""
     from worldenv_core.rl.es import read_ledger
 
-    folder = Path(work) / "es_ledger"
+    folder = Path(work) if kept_ledger(work) else Path(work) / "es_ledger"
     return read_ledger(folder) if folder.is_dir() else []
 
 
@@ -138,7 +147,7 @@ def markdown(runs: dict[str, dict]) -> str:
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--run", action="append", required=True, metavar="NAME=WORKDIR",
-                    help="a post_train_loop work dir, named (repeatable)")
+                    help="a post_train_loop work dir, or a kept ES ledger folder, named (repeatable)")
     ap.add_argument("--rollouts", type=int, default=None,
                     help="rollouts per iteration (default: from the work dir's run_config.json)")
     ap.add_argument("--json", type=Path, help="a folder: each run's curve as NAME.json")
@@ -168,7 +177,10 @@ def main(argv=None) -> dict:
 
 def rollouts_of(work: str | Path) -> int:
     """Rollouts per iteration of a run: contexts x N (ES: contexts x 2 x pairs) from the resolved config
-    post_train_loop keeps in its work dir (`run_config.json`)."""
+    post_train_loop keeps in its work dir (`run_config.json`), or a kept ledger's shape (contexts x members)."""
+    if kept_ledger(work):
+        first = es_ledger(work)[0]["success"]
+        return len(first) * len(first[0])
     path = Path(work) / "run_config.json"
     if not path.exists():
         raise FileNotFoundError(f"{path} missing: pass --rollouts (contexts_per_iteration x n_rollouts)")

@@ -52,6 +52,15 @@ def test_the_cli_reads_a_work_dir_and_keeps_the_curve(tmp_path):
     assert es_run["real_rl_episodes"] == 4 * 256
     assert es_run["direction_cosine"] == [(1, pytest.approx(1 / 2 ** 0.5)), (2, 0.0)]  # d_even (1, 1); d_odd (1, 0), (1, -1)
     assert es_run["es_half_cosine_pooled"] == pytest.approx(1 / 12 ** 0.5)
+    # the same run from its ledger kept in the repository (export_ledger: iter files + the history), no work dir
+    kept = tmp_path / "kept_ledger"
+    kept.mkdir()
+    for f in (work / "es_ledger").iterdir():
+        (kept / f.name).write_text(f.read_text())
+    (kept / "history.json").write_text(json.dumps(_history()[:3]))
+    from_ledger = main(["--run", f"es={kept}"])["es"]
+    assert from_ledger["real_rl_episodes"] == 2 * 16 and from_ledger["validation"] == [(0, 0.5), (32, 0.6)]
+    assert from_ledger["direction_cosine"] == es_run["direction_cosine"]
     with pytest.raises(FileNotFoundError, match="neither training.json nor a checkpoint"):
         read_history(tmp_path)
     with pytest.raises(SystemExit):
