@@ -23,6 +23,7 @@ import zlib
 from pathlib import Path
 
 from worldenv_core.envs.collection import PolicyEvalJob
+from worldenv_core.envs.libero_env import SCENE_SAMPLING
 from worldenv_core.files import write_bytes_atomic
 
 CACHE_VERSION = 1  # bump when what an evaluation job computes changes, so older entries are not read
@@ -75,7 +76,8 @@ compressed: a 280-step episode is 13 MB raw at 128 px), by the job's digest."""
     def key(self, job: PolicyEvalJob) -> str:
         fields = dataclasses.asdict(job)
         fields.update(policy_path=self._checkpoint(job.policy_path), reflector_path=self._checkpoint(job.reflector_path),
-                      view_through=self._checkpoint(job.view_through), version=CACHE_VERSION, packages=self._packages)
+                      view_through=self._checkpoint(job.view_through), version=CACHE_VERSION, packages=self._packages,
+                      scenes=SCENE_SAMPLING)
         return hashlib.sha256(json.dumps(fields, sort_keys=True, default=str).encode()).hexdigest()[:32]
 
     def get(self, job: PolicyEvalJob) -> dict | None:

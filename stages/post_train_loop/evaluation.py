@@ -15,6 +15,7 @@ import torch
 
 from worldenv_core.contract import TaskContract
 from worldenv_core.envs.collection import PolicyEvalJob, evaluate_policy_task
+from worldenv_core.envs.libero_env import SCENE_SAMPLING
 from worldenv_core.envs.replay import PairedReplayJob, RealStart, by_start, placement_starts, replay_context
 from worldenv_core.envs.tasks import contract_task_ids, get_task
 from worldenv_core.files import write_text_atomic
@@ -103,12 +104,13 @@ def real_success(policy_path: str, contract: TaskContract, init_states: int, wor
 
 
 def validation_key(policy_path: str, contract: TaskContract, episodes: int) -> str | None:
-    """What a validation result depends on: the policy's weights, the task contract and the set's
-    size (the set itself follows from them); None for a policy without a weights file."""
+    """What a validation result depends on: the policy's weights, the task contract, the set's size (the
+    set itself follows from them) and how a reset draws a scene; None for a policy without a weights file."""
     weights = Path(policy_path) / "model.safetensors"
     if not weights.exists():
         return None
-    what = {"weights": sha256_file(weights), "contract": dataclasses.asdict(contract), "episodes": int(episodes)}
+    what = {"weights": sha256_file(weights), "contract": dataclasses.asdict(contract), "episodes": int(episodes),
+            "scenes": SCENE_SAMPLING}
     return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:16]
 
 

@@ -27,6 +27,10 @@ log = logging.getLogger(__name__)
 # libero_object tasks 0 and 1 their joints spread by 0.016-0.021 rad about the nominal pose); LIBERO's
 # own env turns it off, so without it every demo would start from one pose no benchmark episode starts from.
 ARM_START_NOISE = 0.02
+# How a reset draws its scene, for caches of results that depend on it. 2: every reset draws the scene a
+# freshly built env's first reset draws from the same seed (`LiberoEnv.reset`); 1 (before): a scene also
+# depended on how often the env had been reset.
+SCENE_SAMPLING = 2
 
 
 class SimulationError(RuntimeError):
@@ -101,6 +105,10 @@ class LiberoEnv:
                 initialization_noise={"magnitude": float(arm_start_noise), "type": "gaussian"},
             )
         self._obs: dict | None = None
+        # LIBERO appends a task's open/close and on/off samplers (a drawer's, a stove's) to this list at every
+        # model load and never clears it, so each hard reset drew one more set from the seeded RNG than the one
+        # before: the fixtures' and objects' placement of a seed moved (by ~2 cm) with the env's reset count.
+        self._property_samplers = len(getattr(self._env.env, "object_property_initializers", []))
 
     # -- properties -------------------------------------------------------------------------
     @property
@@ -129,6 +137,9 @@ class LiberoEnv:
         (cabinets, stoves: model.body_pos) and the arm's start from numpy's global RNG, and an init state restores
         only qpos/qvel, so an unseeded reset is not reproducible. `seed=None` means seed 0."""
         self._env.seed(int(seed) if seed is not None else 0)
+        samplers = getattr(self._env.env, "object_property_initializers", None)
+        if samplers is not None:  # as after construction: this reset draws what a fresh env's first one draws
+            del samplers[self._property_samplers:]
         self._obs = self._env.reset()
         if init_state is not None:
             if isinstance(init_state, (int, np.integer)):

@@ -20,7 +20,8 @@ from worldenv_core.envs.tasks import suite_seed_id
 
 log = logging.getLogger(__name__)
 
-# Per-process cache: building a LIBERO env costs seconds, resetting it milliseconds.
+# Per-process cache: building a LIBERO env costs seconds (a sampled reset rebuilds its model too, but not the
+# process-level setup).
 _ENV_CACHE: "OrderedDict[tuple, LiberoEnv]" = OrderedDict()
 _ENV_CACHE_SIZE = 2
 
