@@ -14,7 +14,7 @@ from pathlib import Path
 
 import torch
 
-from stages.post_train_loop.training import draw_contexts, placements
+from stages.post_train_loop.training import draw_contexts, focus_positions, placements
 from worldenv_core.errors import ConfigError
 from worldenv_core.models.checkpoint import read_config, save_model
 from worldenv_core.rl import es
@@ -51,7 +51,7 @@ def es_collector(cfg, contract, src, encode, policy_path: str, pmeta: dict, work
 
 
 def es_phase(policy, collect, n_contexts: int | None, rl, seed: int, ledger: Path | None = None,
-             guard=None) -> Phase:
+             guard=None, n_tasks: int = 1) -> Phase:
     """`rl.policy_update=es`: one iteration = `rl.es_pairs` antithetic weight-space members (`worldenv_core.rl.es`),
     each acting with its mean actions from the same `rl.contexts_per_iteration` contexts, then one ARS step.
     Contexts and directions are the iteration's generator's draws, so a resumed iteration runs the same
@@ -59,19 +59,27 @@ def es_phase(policy, collect, n_contexts: int | None, rl, seed: int, ledger: Pat
     keeps each iteration's contexts, seeds and outcomes (`iter_NNNN.json`): with the starting policy, all
     that the run's weights follow from (`es.replay_ledger`). `guard` (`training.paired_guard`, the imagined
     route): a step after which the policy's imagined successes fail for real beyond `rl.guard_max_hack_rate`
-    is undone, and the ledger says so."""
+    is undone, and the ledger says so. `rl.task_focus` (of the `n_tasks` trained on): each iteration's
+    contexts from that many tasks, in turn. `rl.es_min_mixed`: no step from an iteration in which fewer
+    contexts than that told any two members apart (a full-size step would follow one or two starts' luck)."""
     def step(item) -> dict:
         it, g = item
         t0 = time.perf_counter()
-        picks = draw_contexts(g, n_contexts, rl.contexts_per_iteration)
+        focus = focus_positions(it, rl.get("task_focus"), n_tasks)
+        picks = draw_contexts(g, n_contexts, rl.contexts_per_iteration, focus)
         seeds = torch.randint(2**62, (rl.es_pairs,), generator=g).tolist()
         members = es.antithetic_members(seeds, rl.es_sigma)
         out = collect(copy.deepcopy(policy).eval(), picks, members)
         returns = es.member_returns(out["success"], out["steps"], rl.es_discount)
         t_update = time.perf_counter()
         before = [p.detach().clone() for _, p in es.es_parameters(policy, rl.es_parameters)] if guard else None
-        stats = es.ars_update(policy, seeds, returns, rl.es_step, rl.get("es_top"), rl.es_parameters)
-        stats["update_seconds"] = time.perf_counter() - t_update
+        mixed = es.mixed_contexts(out["success"])
+        if mixed >= rl.get("es_min_mixed", 1):
+            stats = es.ars_update(policy, seeds, returns, rl.es_step, rl.get("es_top"), rl.es_parameters)
+        else:  # made from too few starts to be the reward's direction: the ledger says no step was taken
+            stats = {**es.pair_stats(seeds, returns, rl.get("es_top"))[0], "es_step_rms": 0.0, "no_step": 1.0}
+        stats.update({"es_mixed_contexts": float(mixed), "update_seconds": time.perf_counter() - t_update,
+                      **({"focus_task": float(focus[0][0])} if focus and len(focus[0]) == 1 else {})})
         if guard is not None and stats["es_step_rms"] > 0:
             stats.update(guard(policy))
             if stats["guard_hack_rate"] > rl.guard_max_hack_rate:  # NaN (no imagined success) passes
@@ -83,7 +91,7 @@ def es_phase(policy, collect, n_contexts: int | None, rl, seed: int, ledger: Pat
                          rl.guard_max_hack_rate)
         if ledger is not None:
             es.write_ledger_entry(ledger, it + 1, picks, seeds, out["success"], out["steps"], returns, rl,
-                                  rolled_back=bool(stats.get("rolled_back")))
+                                  rolled_back=bool(stats.get("rolled_back")), no_step=bool(stats.get("no_step")))
         stats.update({f"rollout_{k}_seconds": v for k, v in out["timing"].items()})
         success = out["success"].float()
         return {"mean_reward": float(success.mean()), "reflector_success_rate": float(success.mean()),
@@ -129,7 +137,8 @@ def seed_from_ledger(work: Path, ledger_from: str | Path, policy, optimizers: di
     es.replay_ledger(policy, entries, done)
     for e in entries[:done]:
         es.write_ledger_entry(work / "es_ledger", e["iteration"], e["contexts"], e["seeds"], torch.tensor(e["success"]),
-                              torch.tensor(e["steps"]), torch.tensor(e["returns"]), rl, e.get("rolled_back", False))
+                              torch.tensor(e["steps"]), torch.tensor(e["returns"]), rl, e.get("rolled_back", False),
+                              e.get("no_step", False))
     history = json.loads((folder / "history.json").read_text()) if (folder / "history.json").exists() else []
     history = [h for h in history if h.get("step", 0) <= done]
     evaluated = sorted({int(h["step"]) for h in history if "validation_success" in h or "real_success" in h})

@@ -70,7 +70,8 @@ RL_DEFAULTS = {"mid_episode_frames": 0, "verdicts": "own", "contexts": "episodes
                "placement_pool": None, "advantages": "rloo", "gae_lambda": 0.95, "critic_steps": 500,
                "critic_minibatch": 256, "critic_lr": 1e-3, "critic_hidden": 256, "critic_replay": 0,
                "exploration": "step", "es_pairs": 8, "es_sigma": 0.05, "es_step": 0.05, "es_top": None,
-               "es_discount": 1.0, "es_parameters": "mean", "es_ledger_from": None}
+               "es_discount": 1.0, "es_parameters": "mean", "es_ledger_from": None, "task_focus": None,
+               "es_min_mixed": 1}
 # top-level settings added later, kept out of the settings hash and work dir at these values
 LATER_DEFAULTS = {"contexts_to": None, "contexts_from": None, "minutes": None}
 
@@ -132,6 +133,15 @@ def validate(cfg: DictConfig) -> None:
                                               or cfg.rl.placement_pool < 1):
         raise ConfigError(f"rl.placement_pool is a number of fixed fresh placements (> 0, with rl.contexts=placements) "
                           f"or null, got {cfg.rl.placement_pool!r} with rl.contexts={cfg.rl.contexts}")
+    focus = cfg.rl.get("task_focus")
+    if focus is not None:
+        n_tasks = len(contract_task_ids(task_contract(cfg)))
+        if cfg.rl.policy_update != "es" or cfg.rl.contexts != "placements" or cfg.rl.placement_pool is not None:
+            raise ConfigError("rl.task_focus draws each iteration's fresh placements from a few tasks in turn: it needs "
+                              "rl.policy_update=es and rl.contexts=placements without rl.placement_pool")
+        if not isinstance(focus, int) or not 1 <= focus <= n_tasks:
+            raise ConfigError(f"rl.task_focus must be null (every task) or an int in 1..{n_tasks} (the tasks trained "
+                              f"on), got {focus!r}")
     if cfg.rl.verdicts not in VERDICTS:
         raise ConfigError(f"rl.verdicts must be one of {list(VERDICTS)}, got {cfg.rl.verdicts!r}")
     if cfg.env not in ENVS:
@@ -244,7 +254,8 @@ def run(cfg: DictConfig) -> dict:
         evaluate = evaluator(cfg, contract, src, policy, policy_path, encode, trainer, work, packed, provenance)
         buffer = SuccessBuffer(work / "success_buffer") if rl.policy_update == "filtered_bc" else None  # kept: the data
         guard = paired_guard(cfg, contract, src, encode)
-        phase = (es_phase(policy, collect, src.n_contexts, rl, cfg.seed, work / "es_ledger", guard) if rl.policy_update == "es" else
+        phase = (es_phase(policy, collect, src.n_contexts, rl, cfg.seed, work / "es_ledger", guard,
+                          len(contract_task_ids(contract))) if rl.policy_update == "es" else
                  rl_phase(policy, optimizer, collect, src.n_contexts, rl, cfg.seed, guard, buffer, value))
         trainer.fit([phase], evaluate=evaluate,
                     evaluate_every=cfg.eval.every, deadline=deadline)
@@ -280,6 +291,7 @@ def validate_es(cfg: DictConfig) -> None:
         raise ConfigError(f"rl.es_discount must be in (0, 1] (1: the return is the success), got {cfg.rl.es_discount}")
     if cfg.rl.es_top is not None and not (isinstance(cfg.rl.es_top, int) and 0 < cfg.rl.es_top <= cfg.rl.es_pairs):
         raise ConfigError(f"rl.es_top must be null (every pair) or an int in 1..rl.es_pairs, got {cfg.rl.es_top!r}")
+    positive_int(cfg, "rl.es_min_mixed", allow_zero=True)
     if cfg.rl.es_parameters not in PARAMETER_SETS:
         raise ConfigError(f"rl.es_parameters must be one of {list(PARAMETER_SETS)}, got {cfg.rl.es_parameters!r}")
 

@@ -281,15 +281,32 @@ def chosen(cfg: DictConfig, stage, contract: TaskContract, starts: list[RealStar
     return [i for i in mine if starts[i].key not in errors]
 
 
-def draw_contexts(g: torch.Generator, n_contexts: int | None, count: int) -> list[int]:
+def draw_contexts(g: torch.Generator, n_contexts: int | None, count: int,
+                  focus: tuple[list[int], int] | None = None) -> list[int]:
     """An iteration's context numbers, its generator's first draw: `count` of the `n_contexts` at
     random with replacement, or (None: fresh placements) consecutive numbers from a random 40-bit
     start. Iteration i (from 0) draws from `Generator().manual_seed(step_seed(seed, i))`, so which
-    contexts any iteration of a run saw follows from its seed (`analysis.pool_revisits`)."""
+    contexts any iteration of a run saw follows from its seed (`analysis.pool_revisits`). `focus`
+    (fresh placements only): (positions in the task list, its length): placements of those tasks
+    alone, in turn (`placements` numbers placement k of the task at position k % length)."""
     if n_contexts is None:
         base = int(torch.randint(2**40, (1,), generator=g))
-        return list(range(base, base + count))
+        if focus is None:
+            return list(range(base, base + count))
+        positions, n_tasks = focus
+        return [n_tasks * (base + c // len(positions)) + positions[c % len(positions)] for c in range(count)]
+    if focus is not None:
+        raise ValueError("a task focus draws fresh placements: it needs rl.contexts=placements without a pool")
     return torch.randint(n_contexts, (count,), generator=g).tolist()
+
+
+def focus_positions(iteration: int, per_iteration: int | None, n_tasks: int) -> tuple[list[int], int] | None:
+    """`rl.task_focus` = m: iteration i (from 0) draws its contexts from m of the tasks trained on, the next
+    m in turn (positions i*m .. i*m+m-1, modulo the task count), so a cycle of n/m iterations visits each
+    task once; None (null): every task in every iteration."""
+    if per_iteration is None:
+        return None
+    return [(iteration * per_iteration + j) % n_tasks for j in range(per_iteration)], n_tasks
 
 
 def collector(cfg: DictConfig, contract: TaskContract, src: Rollouts, encode, policy_path: str, pmeta: dict, work):

@@ -81,6 +81,22 @@ def member_returns(success: torch.Tensor, steps: torch.Tensor, discount: float =
     return ret.mean(0)
 
 
+def pair_stats(seeds: list[int], returns: torch.Tensor,
+               top: int | None = None) -> tuple[dict, torch.Tensor, torch.Tensor]:
+    """The pairs a step uses (`ars_update`'s `top`), their differences R(+k) - R(-k), and the figures of
+    the members' returns (the spread sigma_R over the pairs used, best and worst member)."""
+    r = returns.view(len(seeds), 2).float()
+    b = len(seeds) if top is None else max(1, min(int(top), len(seeds)))
+    best = r.max(1).values.argsort(descending=True, stable=True)[:b]
+    used = r[best]
+    diff = used[:, 0] - used[:, 1]
+    stats = {"es_pairs": float(len(seeds)), "es_pairs_used": float(b),
+             "es_return_std": float(used.flatten().std(unbiased=False)),
+             "es_member_best": float(r.max()), "es_member_worst": float(r.min()),
+             "es_pair_diff_abs": float(diff.abs().mean())}
+    return stats, best, diff
+
+
 @torch.no_grad()
 def ars_update(policy: torch.nn.Module, seeds: list[int], returns: torch.Tensor, step: float, top: int | None = None,
                which: str = "mean") -> dict:
@@ -89,15 +105,8 @@ def ars_update(policy: torch.nn.Module, seeds: list[int], returns: torch.Tensor,
     when the returns used do not differ (nothing to follow). -> figures of the step."""
     if not step > 0:
         raise ValueError(f"rl.es_step must be > 0, got {step}")
-    r = returns.view(len(seeds), 2).float()
-    b = len(seeds) if top is None else max(1, min(int(top), len(seeds)))
-    best = r.max(1).values.argsort(descending=True, stable=True)[:b]
-    used = r[best]
-    sigma_r = float(used.flatten().std(unbiased=False))
-    diff = used[:, 0] - used[:, 1]
-    stats = {"es_pairs": float(len(seeds)), "es_pairs_used": float(b), "es_return_std": sigma_r,
-             "es_member_best": float(r.max()), "es_member_worst": float(r.min()),
-             "es_pair_diff_abs": float(diff.abs().mean())}
+    stats, best, diff = pair_stats(seeds, returns, top)
+    b, sigma_r = len(best), stats["es_return_std"]
     if sigma_r == 0.0:
         return {**stats, "es_step_rms": 0.0}
     params = es_parameters(policy, which)
@@ -117,11 +126,20 @@ def ars_update(policy: torch.nn.Module, seeds: list[int], returns: torch.Tensor,
 LEDGER_SETTINGS = ("es_sigma", "es_step", "es_top", "es_discount", "es_parameters")
 
 
+def mixed_contexts(success: torch.Tensor) -> int:
+    """(contexts, members) outcomes -> how many contexts told any two members apart: the starts a step's
+    direction is learnt from (one where every member succeeded, or every one failed, says nothing)."""
+    s = success.bool()
+    return int((s.any(1) & ~s.all(1)).sum())
+
+
 def write_ledger_entry(folder, iteration: int, contexts: list[int], seeds: list[int], success: torch.Tensor,
-                       steps: torch.Tensor, returns: torch.Tensor, rl, rolled_back: bool = False) -> None:
+                       steps: torch.Tensor, returns: torch.Tensor, rl, rolled_back: bool = False,
+                       no_step: bool = False) -> None:
     """One iteration's record (whole or absent): its contexts, directions, every member's outcome from every
     context (contexts x members) and the settings of its step, enough to redo the step (`replay_ledger`);
-    `rolled_back`: the step was made and undone (the paired-replay guard), so a replay skips it."""
+    `rolled_back`: the step was made and undone (the paired-replay guard); `no_step`: none was made (too few
+    contexts told the members apart, `rl.es_min_mixed`); a replay skips both."""
     import json
     from pathlib import Path
 
@@ -129,7 +147,8 @@ def write_ledger_entry(folder, iteration: int, contexts: list[int], seeds: list[
 
     entry = {"iteration": int(iteration), "contexts": [int(c) for c in contexts], "seeds": [int(s) for s in seeds],
              "success": success.int().tolist(), "steps": steps.int().tolist(), "returns": returns.tolist(),
-             **{k: rl.get(k) for k in LEDGER_SETTINGS}, **({"rolled_back": True} if rolled_back else {})}
+             **{k: rl.get(k) for k in LEDGER_SETTINGS}, **({"rolled_back": True} if rolled_back else {}),
+             **({"no_step": True} if no_step else {})}
     Path(folder).mkdir(parents=True, exist_ok=True)
     write_text_atomic(Path(folder) / f"iter_{int(iteration):04d}.json", json.dumps(entry))
 
@@ -151,7 +170,7 @@ def replay_ledger(policy: torch.nn.Module, entries: list[dict], upto: int | None
     """The starting policy moved by the ledger's steps (in place), iterations 1..upto: the run's weights
     rebuilt from a few kilobytes, on any machine that has the starting policy."""
     for e in entries[:upto]:
-        if e.get("rolled_back"):  # made, then undone by the guard
+        if e.get("rolled_back") or e.get("no_step"):  # made, then undone by the guard; or never made
             continue
         ars_update(policy, e["seeds"], torch.tensor(e["returns"]), e["es_step"], e["es_top"], e["es_parameters"])
     return policy

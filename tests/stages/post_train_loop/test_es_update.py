@@ -53,3 +53,23 @@ def test_the_guard_undoes_a_step_and_the_ledger_replays_without_it(tmp_path):
         assert entry.get("rolled_back", False) == undone
         replayed = es.replay_ledger(copy.deepcopy(start), [entry])
         assert all(a.equal(b) for a, b in zip(replayed.parameters(), policy.parameters()))
+
+
+def test_no_step_from_too_few_telling_contexts_and_the_ledger_replays_it_as_none(tmp_path):
+    """rl.es_min_mixed: an iteration in which fewer contexts told the members apart makes no step; the ledger
+    marks it, and a replay leaves the weights where the run left them."""
+    for min_mixed in (1, 5):  # 4 contexts: at most 4 can tell the members apart
+        rl = OmegaConf.create({**RL, "es_min_mixed": min_mixed})
+        policy, contexts, encoder = _policy_and_contexts(4)
+        start = copy.deepcopy(policy)
+        collect = lambda base, picks, members: es.imagined_member_outcomes(  # noqa: E731
+            base, VerdictEnv(), [contexts[i] for i in picks], members, encoder)
+        ledger = tmp_path / f"ledger_{min_mixed}"
+        stats = (phase := es_phase(policy, collect, 4, rl, 0, ledger)).step(next(iter(phase.batches(0))))
+        assert 1 <= stats["es_mixed_contexts"] <= 4
+        moved = not all(a.equal(b) for a, b in zip(policy.parameters(), start.parameters()))
+        assert moved == (min_mixed == 1) and stats.get("no_step", 0.0) == float(min_mixed == 5)
+        (entry,) = es.read_ledger(ledger)
+        assert entry.get("no_step", False) == (min_mixed == 5)
+        replayed = es.replay_ledger(copy.deepcopy(start), [entry])
+        assert all(a.equal(b) for a, b in zip(replayed.parameters(), policy.parameters()))

@@ -459,7 +459,9 @@ def test_evolution_strategies_in_weight_space_on_real_and_imagined_rollouts(trai
                             f"rl.es_ledger_from={kept_ledger}"))
     for override, match in (("rl.es_sigma=0", r"rl.es_sigma must be > 0"), ("rl.es_top=3", "rl.es_top must be"),
                             ("rl.es_discount=1.5", r"rl.es_discount must be in \(0, 1\]"),
-                            ("rl.es_parameters=all", "rl.es_parameters must be one of")):
+                            ("rl.es_parameters=all", "rl.es_parameters must be one of"),
+                            ("rl.task_focus=2", r"rl.task_focus must be null \(every task\) or an int in 1..1"),
+                            ("rl.es_min_mixed=-1", "rl.es_min_mixed")):
         with pytest.raises(ConfigError, match=match):
             post_train_loop(cfg("post_train_loop", exp, *es_args, override))
     # the imagined route: the members' rollouts as one batch through the world model, the reflector's verdict

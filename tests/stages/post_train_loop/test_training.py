@@ -86,3 +86,25 @@ def test_a_placement_pool_draws_the_same_fixed_placements_every_iteration():
             pass
     drawn = {k for p in seen for k in p}
     assert drawn <= set(range(5)) and len(drawn) >= 4 and all(len(p) == 6 for p in seen)
+
+
+def test_a_task_focus_draws_each_iteration_from_the_next_tasks_in_turn(contract):
+    """rl.task_focus: iteration i's fresh placements are of task positions i*m .. i*m+m-1 (mod the task
+    count), distinct numbers, so a cycle visits each task once and no placement repeats."""
+    from stages.post_train_loop.training import draw_contexts, focus_positions
+
+    start = placements(contract(task_ids=(0, 2, 5), suite="libero_spatial"))
+    assert focus_positions(4, None, 3) is None
+    assert [focus_positions(i, 1, 3)[0] for i in range(4)] == [[0], [1], [2], [0]]
+    assert focus_positions(1, 2, 3) == ([2, 0], 3)
+    for it, tasks in ((0, [0]), (1, [2]), (2, [5])):
+        picks = draw_contexts(torch.Generator().manual_seed(it), None, 6, focus_positions(it, 1, 3))
+        assert [start(k)[0].task_id for k in picks] == tasks * 6 and len(set(picks)) == 6
+    picks = draw_contexts(torch.Generator().manual_seed(7), None, 4, focus_positions(1, 2, 3))
+    assert [start(k)[0].task_id for k in picks] == [5, 0, 5, 0] and len(set(picks)) == 4
+    try:
+        draw_contexts(torch.Generator(), 10, 4, ([0], 3))
+    except ValueError as e:
+        assert "fresh placements" in str(e)
+    else:
+        raise AssertionError("a task focus over collected episodes' starts must be refused")

@@ -91,6 +91,11 @@ def test_ars_climbs_a_smooth_objective_and_makes_no_step_without_a_difference():
         es.ars_update(m, [1], torch.tensor([1.0, 0.0]), 0.0)
 
 
+def test_a_context_tells_members_apart_only_where_their_outcomes_differ():
+    success = torch.tensor([[1, 1, 1, 1], [0, 0, 0, 0], [1, 0, 1, 1], [0, 0, 1, 0]])
+    assert es.mixed_contexts(success) == 2 and es.mixed_contexts(success[:2]) == 0
+
+
 def test_the_ledger_rebuilds_the_runs_weights_from_the_starting_policy(tmp_path):
     """Each iteration's record (contexts, seeds, outcomes, settings) replayed on the starting policy gives the
     run's weights exactly; a missing iteration is named."""
