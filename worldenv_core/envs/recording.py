@@ -24,13 +24,16 @@ log = logging.getLogger(__name__)
 # process-level setup).
 _ENV_CACHE: "OrderedDict[tuple, LiberoEnv]" = OrderedDict()
 _ENV_CACHE_SIZE = 2
+# fresh placements a cached env keeps to put back without a hard reset (`LiberoEnv(scene_cache=)`): the real
+# route's ES iteration meets each of its 16 starts once per member, a worker its share of them
+SCENE_CACHE = 64
 
 
 def cached_env(suite: str, task_id: int, cameras, image_size: int, render: bool = True) -> LiberoEnv:
     key = (suite, int(task_id), tuple(cameras), int(image_size), bool(render))
     env = _ENV_CACHE.pop(key, None)
     if env is None:
-        env = LiberoEnv(suite, task_id, cameras=cameras, image_size=image_size, render=render)
+        env = LiberoEnv(suite, task_id, cameras=cameras, image_size=image_size, render=render, scene_cache=SCENE_CACHE)
     _ENV_CACHE[key] = env
     while len(_ENV_CACHE) > _ENV_CACHE_SIZE:
         _ENV_CACHE.popitem(last=False)[1].close()
