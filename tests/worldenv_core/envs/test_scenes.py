@@ -1,6 +1,5 @@
 """A kept scene put back without rebuilding the simulator is the hard reset's, bit for bit (real LIBERO)."""
 import numpy as np
-import pytest
 
 from worldenv_core.envs.libero_env import LiberoEnv
 
@@ -18,11 +17,10 @@ def _episode(env, frame):
     return np.array(states), np.array(proprio), np.array(success), np.array(images)
 
 
-@pytest.mark.parametrize("suite, task, start", [
-    ("libero_spatial", 4, {"seed": 1000}),  # a drawer: its open/close sampler and the cabinet's placement
-    ("libero_goal", 7, {"seed": 2000}),  # a stove's on/off sampler
-])
-def test_a_kept_scene_comes_back_as_the_hard_reset_made_it(suite, task, start):
+def test_a_kept_scene_comes_back_as_the_hard_reset_made_it():
+    """libero_spatial 4: a drawer's open/close sampler and the cabinet's placement are drawn at reset (a stove's
+    on/off sampler, libero_goal 7, was measured the same way when this was written)."""
+    suite, task, start = "libero_spatial", 4, {"seed": 1000}
     fresh = LiberoEnv(suite, task, cameras=("agentview",), image_size=64)
     expected = _episode(fresh, fresh.reset(**start))
     fresh.close()
