@@ -62,6 +62,8 @@ def summarise(history: list[dict], rollouts_per_iteration: int, ledger: list[dic
     steps = [h for h in history if "mean_reward" in h]
     val = [(h["step"] * rollouts_per_iteration, h["validation_success"]) for h in history if "validation_success" in h]
     val_n = [h.get("validation_episodes", 0) for h in history if "validation_success" in h]
+    per_task = {int(k[len("validation_task"):]): [(h["step"] * rollouts_per_iteration, h[k]) for h in history if k in h]
+                for k in sorted({k for h in history for k in h if k.startswith("validation_task")})}
     series = {k: [(h["step"], h[k]) for h in steps if k in h]
               for k in ("mean_reward", "kept_groups", "exact_kl", "action_shift_rms", "direction_cosine", "ppo_steps",
                         "first_step_kl", "es_pair_diff_abs", "es_return_std", "es_step_rms")}
@@ -83,7 +85,7 @@ def summarise(history: list[dict], rollouts_per_iteration: int, ledger: list[dic
         series["direction_cosine"] = [(e["iteration"], c) for e, c in zip(ledger, agree["per_iteration"])]
         series["es_half_cosine_pooled"] = agree["pooled"]
     return {"iterations": len(steps), "real_rl_episodes": episodes, "validation": val, "validation_episodes": val_n,
-            **series,
+            "validation_tasks": per_task, **series,
             "gradient_signal": {"iterations": len(sig), "signal_sq": pooled[0] if pooled else None,
                                 "noise_sq": pooled[1] if pooled else None, "groups_for_cos_0.9": groups_needed},
             "throughput": {"episodes_per_hour": episodes / wall * 3600 if wall else None,
@@ -94,26 +96,48 @@ def summarise(history: list[dict], rollouts_per_iteration: int, ledger: list[dic
                            "update_share_of_wall": update / wall if wall else None}}
 
 
+def _task_bars(ax, per_task: dict) -> None:
+    """Each task's validation success at the run's first and last validation point, side by side."""
+    tasks = sorted(per_task)
+    if not tasks or not all(per_task[t] for t in tasks):
+        return
+    for k, (which, shade) in enumerate(((0, "#bbbbbb"), (-1, "#1f77b4"))):
+        at = per_task[tasks[0]][which][0]
+        ax.bar([t + (k - 0.5) * 0.4 for t in tasks], [per_task[t][which][1] for t in tasks], width=0.4, color=shade,
+               label=f"{at} RL episodes")
+    ax.set_xticks(tasks)
+    ax.legend(fontsize=8)
+
+
 def plot(runs: dict[str, dict], path: str | Path, title: str = "") -> Path:
     """Validation success against real RL episodes, and the per-iteration diagnostics, one line per run."""
     from worldenv_core.viz import figure, save_figure
 
     fig, axes = figure(2, 3, figsize=(15, 7.5), squeeze=False)
+    ppo = any(s.get("exact_kl") or s.get("action_shift_rms") for s in runs.values())
     panels = [("validation success (fixed fresh placements)", "validation", "real RL episodes consumed"),
               ("training rollouts' success (diagnostic)", "mean_reward", "iteration"),
               ("exact KL per update (PPO)", "exact_kl", "iteration"),
               ("direction cosine (PPO: even vs odd groups; ES: even vs odd starts)", "direction_cosine", "iteration"),
               ("weight-space members: mean |R+ - R-| per pair (ES)", "es_pair_diff_abs", "iteration"),
               ("RMS change of the mean action (PPO)", "action_shift_rms", "iteration")]
+    if not ppo:  # ES runs only: the PPO panels would be empty, so per-task validation and the step's size instead
+        first = next(iter(runs))
+        panels[2] = (f"validation per task, {first}: first and last point", "validation_tasks", "task")
+        panels[5] = ("ES step, RMS relative to each weight tensor", "es_step_rms", "iteration")
     for ax, (name, key, xlabel) in zip(axes.flat, panels):
+        if key == "validation_tasks":
+            _task_bars(ax, next(iter(runs.values())).get(key) or {})
         for label, s in runs.items():
+            if key == "validation_tasks":
+                break
             pts = s.get(key) or []
             if pts and key == "validation":  # with the 95 % binomial interval of each point's episodes
                 err = [1.96 * math.sqrt(y * (1 - y) / n) if n else 0.0 for (_, y), n in zip(pts, s["validation_episodes"])]
                 ax.errorbar([x for x, _ in pts], [y for _, y in pts], yerr=err, marker="o", ms=4, capsize=3, label=label)
             elif pts:  # markers: a run of one iteration shows too
                 ax.plot([x for x, _ in pts], [y for _, y in pts], label=label, marker="o", markersize=3)
-        if key in ("validation", "mean_reward"):
+        if key in ("validation", "mean_reward", "validation_tasks"):
             ax.set_ylim(0, 1)
         ax.set_title(name, fontsize=10)
         ax.set_xlabel(xlabel)

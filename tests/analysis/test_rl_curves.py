@@ -61,6 +61,13 @@ def test_the_cli_reads_a_work_dir_and_keeps_the_curve(tmp_path):
     from_ledger = main(["--run", f"es={kept}"])["es"]
     assert from_ledger["real_rl_episodes"] == 2 * 16 and from_ledger["validation"] == [(0, 0.5), (32, 0.6)]
     assert from_ledger["direction_cosine"] == es_run["direction_cosine"]
+    # ES runs alone: per-task validation in place of the PPO panels (each task at the first and the last point)
+    es_only = [{k: v for k, v in h.items() if k not in ("exact_kl", "action_shift_rms")} for h in _history()[:3]]
+    es_only[0].update(validation_task0=0.4, validation_task1=0.9)
+    es_only[2].update(validation_task0=0.7, validation_task1=0.8)
+    (kept / "history.json").write_text(json.dumps(es_only))
+    per_task = main(["--run", f"es={kept}", "--figure", str(tmp_path / "es.png")])["es"]["validation_tasks"]
+    assert per_task == {0: [(0, 0.4), (32, 0.7)], 1: [(0, 0.9), (32, 0.8)]} and (tmp_path / "es.png").stat().st_size > 0
     with pytest.raises(FileNotFoundError, match="neither training.json nor a checkpoint"):
         read_history(tmp_path)
     with pytest.raises(SystemExit):
