@@ -126,11 +126,9 @@ def plot(runs: dict[str, dict], path: str | Path, title: str = "") -> Path:
         panels[2] = (f"validation per task, {first}: first and last point", "validation_tasks", "task")
         panels[5] = ("ES step, RMS relative to each weight tensor", "es_step_rms", "iteration")
     for ax, (name, key, xlabel) in zip(axes.flat, panels):
-        if key == "validation_tasks":
+        if key == "validation_tasks":  # the first run's per-task bars, not a line per run
             _task_bars(ax, next(iter(runs.values())).get(key) or {})
-        for label, s in runs.items():
-            if key == "validation_tasks":
-                break
+        for label, s in (runs.items() if key != "validation_tasks" else ()):
             pts = s.get(key) or []
             if pts and key == "validation":  # with the 95 % binomial interval of each point's episodes
                 err = [1.96 * math.sqrt(y * (1 - y) / n) if n else 0.0 for (_, y), n in zip(pts, s["validation_episodes"])]
