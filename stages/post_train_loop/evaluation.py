@@ -219,8 +219,10 @@ def section(ctx: ReportContext, limit: int = 6) -> list[str]:
 
 def env_label(run: StageRecord) -> str:
     """The run's environment, and where its rollouts start when not at the episodes' first frames."""
-    mid = (run.config.get("rl") or {}).get("mid_episode_frames")
-    return run.tags.get("env", "imagined") + (f", {mid} mid-episode frames" if mid else "")
+    rl = run.config.get("rl") or {}
+    mid, depth = rl.get("mid_episode_frames"), rl.get("context_depth") or [0.0, 1.0]
+    at = f" at {depth[0]:g}-{depth[1]:g} of the way" if [float(x) for x in depth] != [0.0, 1.0] else ""
+    return run.tags.get("env", "imagined") + (f", {mid} mid-episode frames{at}" if mid else "")
 
 
 def real_episodes_used(ctx: ReportContext, run: StageRecord) -> tuple[int, int]:

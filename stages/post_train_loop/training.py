@@ -42,30 +42,38 @@ log = logging.getLogger("worldenv.post_train_loop")
 Collect = Callable[[torch.nn.Module, list[int], list[torch.Generator]], RolloutBatch]
 
 
-def episode_starts(paths: list[Path], cameras: list[str], mid_frames: int):
+def episode_starts(paths: list[Path], cameras: list[str], mid_frames: int, depth=(0.0, 1.0)):
     """(episode, where it starts in the real simulator) for each start frame of each collected
     episode: its first frame (the paper), or with `rl.mid_episode_frames` = mid_frames > 0, that many
-    frames spread over its part before the first success."""
+    frames spread over its part before the first success (the `rl.context_depth` fraction of it)."""
     from worldenv_core.data.mcap_io import read_episode  # here: LOOP from a context pack runs without MCAP
 
     for p in paths:
         ep = read_episode(p, cameras=cameras)
-        for f in mid_episode_frames(ep.success, ep.length, mid_frames) if mid_frames else [0]:
+        for f in mid_episode_frames(ep.success, ep.length, mid_frames, depth) if mid_frames else [0]:
             yield ep, RealStart(task_id=ep.meta.task_id, episode=str(p), frame=f)
 
 
-def contexts_from_episodes(paths: list[Path], camera: str, mid_frames: int = 0) -> tuple[list[Context], list[RealStart]]:
+def contexts_from_episodes(paths: list[Path], camera: str, mid_frames: int = 0,
+                           depth=(0.0, 1.0)) -> tuple[list[Context], list[RealStart]]:
     """LOOP's contexts (frame, proprio and instruction at each start frame of each collected
     episode) and where each starts in the real simulator (the paired replays at evaluations)."""
-    pairs = [(Context.from_episode(ep, camera, st.frame), st) for ep, st in episode_starts(paths, [camera], mid_frames)]
+    pairs = [(Context.from_episode(ep, camera, st.frame), st)
+             for ep, st in episode_starts(paths, [camera], mid_frames, depth)]
     return [c for c, _ in pairs], [st for _, st in pairs]
 
 
-def real_starts(paths: list[Path], mid_frames: int = 0) -> tuple[list[RealStart], list[str]]:
+def real_starts(paths: list[Path], mid_frames: int = 0, depth=(0.0, 1.0)) -> tuple[list[RealStart], list[str]]:
     """The same contexts in the real simulator (`env=real`): each start (its episode's scene rebuilt
     from its seed, its actions replayed up to the start frame), and its instruction."""
-    pairs = [(st, ep.meta.instruction) for ep, st in episode_starts(paths, [], mid_frames)]
+    pairs = [(st, ep.meta.instruction) for ep, st in episode_starts(paths, [], mid_frames, depth)]
     return [st for st, _ in pairs], [i for _, i in pairs]
+
+
+def context_depth(rl) -> tuple[float, float]:
+    """`rl.context_depth` as (lo, hi); runs and packs from before the setting: the whole part before success."""
+    depth = rl.get("context_depth")
+    return (0.0, 1.0) if depth is None else tuple(float(x) for x in depth)
 
 
 def imagined_collector(env, contexts: list[Context], n_rollouts: int, encode, noise_scale: float = 1.0,
@@ -242,7 +250,7 @@ def rollouts(cfg: DictConfig, stage, contract: TaskContract, policy, encode, epi
         if rl.contexts == "placements":  # None: a new placement per context; P: the same P placements throughout
             out.n_contexts = rl.get("placement_pool") or None
         else:
-            out.starts, out.instructions = real_starts(episodes, rl.mid_episode_frames)
+            out.starts, out.instructions = real_starts(episodes, rl.mid_episode_frames, context_depth(rl))
             keep = chosen(cfg, stage, contract, out.starts)
             out.starts, out.instructions = [out.starts[i] for i in keep], [out.instructions[i] for i in keep]
             out.n_contexts = len(out.starts)
@@ -254,7 +262,7 @@ def rollouts(cfg: DictConfig, stage, contract: TaskContract, policy, encode, epi
         if pack is not None:  # chosen where the episodes are, by the same rules
             out.contexts, out.keys = pack.contexts, pack.keys
         else:
-            contexts, starts = contexts_from_episodes(episodes, camera, rl.mid_episode_frames)
+            contexts, starts = contexts_from_episodes(episodes, camera, rl.mid_episode_frames, context_depth(rl))
             keep = chosen(cfg, stage, contract, starts)
             out.contexts, out.starts = [contexts[i] for i in keep], [starts[i] for i in keep]
             out.keys = [st.key for st in out.starts]
@@ -325,7 +333,8 @@ def pack_contexts(cfg: DictConfig, stage, contract: TaskContract, src: Rollouts,
     as a context pack; nothing is trained, and nothing recorded (no later stage may take the export
     for a post-trained policy)."""
     out = write_context_pack(cfg.contexts_to, src.contexts, src.keys, encoder, src.camera, contract.meta(),
-                             {"mid_episode_frames": int(cfg.rl.mid_episode_frames), "expert_only": bool(cfg.expert_only)})
+                             {"mid_episode_frames": int(cfg.rl.mid_episode_frames), "expert_only": bool(cfg.expert_only),
+                              "context_depth": list(context_depth(cfg.rl))})
     stage.not_recorded = f"it exported the contexts to {out}"
     stage.metrics.update({"context_pack": str(out), "contexts": len(src.contexts),
                           "pack_mib": round(out.stat().st_size / 2 ** 20, 1)})
@@ -342,3 +351,7 @@ def check_pack(cfg: DictConfig, contract: TaskContract, pack: ContextPack, where
     if frames != cfg.rl.mid_episode_frames:
         raise ConfigError(f"{where} was packed with rl.mid_episode_frames={frames}, this run has "
                           f"rl.mid_episode_frames={cfg.rl.mid_episode_frames}: pack again or set it")
+    depth = [float(x) for x in pack.settings.get("context_depth", [0.0, 1.0])]  # packs before it: the whole part
+    if frames and depth != list(context_depth(cfg.rl)):
+        raise ConfigError(f"{where} was packed with rl.context_depth={depth}, this run has "
+                          f"rl.context_depth={list(context_depth(cfg.rl))}: pack again or set it")

@@ -35,12 +35,27 @@ class Context:
                    proprio=torch.from_numpy(ep.proprio[t]))
 
 
-def mid_episode_frames(success: np.ndarray, length: int, n: int) -> list[int]:
+def mid_episode_frames(success: np.ndarray, length: int, n: int,
+                       depth: tuple[float, float] = (0.0, 1.0)) -> list[int]:
     """n (>= 0) frames spread over the part of an episode before its first success (the task not yet
-    done, so there is something left to judge), avoiding the first and the success frame."""
+    done, so there is something left to judge), avoiding the first and the success frame. `depth`
+    (lo, hi): only the fraction lo..hi of that part (e.g. (1/3, 1): where the imagined verdict is
+    faithful, from about a third of the way into a task)."""
+    lo, hi = check_depth(depth)
     hits = np.flatnonzero(success)
     end = int(hits[0]) if len(hits) else length
-    return sorted({int(round(end * (i + 1) / (n + 1))) for i in range(n)} - {0})
+    return sorted({int(round(end * (lo + (hi - lo) * (i + 1) / (n + 1)))) for i in range(n)} - {0, end})
+
+
+def check_depth(depth) -> tuple[float, float]:
+    """(lo, hi) with 0 <= lo < hi <= 1, or a ValueError naming what is wrong."""
+    try:
+        lo, hi = (float(x) for x in depth)
+    except (TypeError, ValueError):
+        raise ValueError(f"a context depth is two fractions [lo, hi] of an episode, got {depth!r}") from None
+    if not 0.0 <= lo < hi <= 1.0:
+        raise ValueError(f"a context depth [lo, hi] needs 0 <= lo < hi <= 1, got [{lo}, {hi}]")
+    return lo, hi
 
 
 @dataclass

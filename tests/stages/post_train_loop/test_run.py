@@ -10,6 +10,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from stages.post_train_loop.es_update import export_ledger
 from stages.post_train_loop.run import run as post_train_loop
+from stages.post_train_loop.training import real_starts
 from stages.train_reflector.run import run as train_reflector
 from tests.stages.conftest import REFLECTOR, stage_cfg
 from worldenv_core.data.mcap_io import read_episode, read_reflector_scores
@@ -263,6 +264,21 @@ def test_rollouts_start_part_way_through_the_collected_episodes(trained):
     assert real["contexts"] == first["contexts"] and real["train_real_episodes"] == 2
     with pytest.raises(ConfigError, match="mid_episode_frames"):
         post_train_loop(cfg("post_train_loop", exp, *LOOP, "rl.mid_episode_frames=-1"))
+    # keyframes only in the part of each episode asked for (where the verdict is faithful), named in the report
+    deep = post_train_loop(cfg("post_train_loop", exp, *LOOP, "env=real", "rl.mid_episode_frames=1",
+                               "rl.context_depth=[0.6,1.0]", "rl.iterations=1", "eval.every=0"))
+    assert deep["contexts"] == first["contexts"]
+    runs = Manifest(exp).find("post_train_loop", task="tiny", env="real")
+    assert runs[-1].config["rl"]["context_depth"] == [0.6, 1.0] and work(runs[-1]) != work(runs[-2])
+    m = Manifest(exp)
+    episodes = [p for p in m.resolve(m.latest("collect", source="expert", task="tiny")) if p.suffix == ".mcap"]
+    for start in real_starts(episodes, 1, (0.6, 1.0))[0]:
+        ep = read_episode(Path(start.episode), cameras=[])
+        before = int(ep.success.argmax()) if ep.success.any() else ep.length
+        assert 0.6 * before <= start.frame < before
+    for override, match in (("rl.context_depth=[0.6,0.2]", "lo < hi"), ("rl.context_depth=[0.5,1.0]", "mid_episode_frames > 0")):
+        with pytest.raises(ConfigError, match=match):
+            post_train_loop(cfg("post_train_loop", exp, *LOOP, override))
 
 
 def test_loop_from_a_context_pack_trains_as_the_stage_does_without_episodes_or_encoder(trained, tmp_path):

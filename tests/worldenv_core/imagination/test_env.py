@@ -55,3 +55,15 @@ def test_mid_episode_frames_lie_before_the_first_success():
     success[21:] = True
     assert mid_episode_frames(success, 30, 2) == [7, 14]
     assert mid_episode_frames(np.zeros(31, bool), 30, 1) == [15]
+
+
+def test_mid_episode_frames_keep_to_the_depth_asked_for():
+    """rl.context_depth: keyframes only where the verdict is faithful, e.g. past a third of the way in."""
+    success = np.zeros(31, bool)
+    success[21:] = True  # the part before success: frames 0-20
+    assert mid_episode_frames(success, 30, 2, (1 / 3, 1.0)) == [12, 16]  # 21 x 5/9, 21 x 7/9
+    assert mid_episode_frames(success, 30, 2, (0.0, 1.0)) == mid_episode_frames(success, 30, 2)
+    assert all(f >= 15 for f in mid_episode_frames(np.zeros(31, bool), 30, 4, (0.5, 1.0)))
+    for bad in ((0.5, 0.5), (-0.1, 1.0), (0.2, 1.5), (0.3,), "deep"):
+        with pytest.raises(ValueError, match="context depth"):
+            mid_episode_frames(success, 30, 2, bad)
