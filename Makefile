@@ -12,7 +12,7 @@ export MUJOCO_GL ?= egl
 export HF_HUB_OFFLINE := 1
 export TOKENIZERS_PARALLELISM := false
 
-.PHONY: setup test test-fast faults smoke pipeline rl-real suites suites-table suites-pro eval-release research-checkpoints fidelity bench cost-model expert-table tensorboard clean
+.PHONY: setup test test-fast faults smoke pipeline refit rl-real suites suites-table suites-pro eval-release research-checkpoints fidelity bench cost-model expert-table tensorboard clean
 
 setup: $(STAMP)
 
@@ -67,6 +67,18 @@ pipeline: setup
 	# termination=all: each episode once to the horizon, oracle / fixed / reflector read off it
 	for policy in sft post_trained; do \
 	  $(PY) -m stages.evaluate $(STAGE_ARGS) policy_from=$$policy termination=all || exit 1; done
+
+# One refit round of the imagined route (after `make pipeline`): the post-trained policy's own rollouts
+# (REFIT_EPISODES per task, real episodes counted in the manifest) collect into a folder of their own; the world
+# model and the reflector are refit on every collection; LOOP goes on from the post-trained policy. REFIT_ARGS
+# reach the world model (e.g. init_from=<record> to go on from the last one instead of from scratch).
+REFIT_EPISODES ?= 20
+refit: setup
+	$(PY) -m stages.collect $(STAGE_ARGS) source=policy policy_from=post_trained post_success_steps=32 \
+	  episodes_per_task=$(REFIT_EPISODES)
+	$(PY) -m stages.train_worldsim $(STAGE_ARGS) policy_collections=all $(REFIT_ARGS)
+	$(PY) -m stages.train_reflector $(STAGE_ARGS) policy_collections=all
+	$(PY) -m stages.post_train_loop $(STAGE_ARGS) policy_from=post_trained policy_collections=all
 
 # Verdict fidelity and the world model as a policy evaluator: each policy at each Laplace noise scale acts
 # in imagination, its actions are replayed in the real simulator (needs the pipeline's stages up to

@@ -68,6 +68,14 @@ def positive_int(cfg: DictConfig, key: str, allow_zero: bool = False) -> int:
     return value
 
 
+def one_of(cfg: DictConfig, key: str, choices) -> str:
+    """The setting at `key`, or a ConfigError naming it and its choices."""
+    value = OmegaConf.select(cfg, key)
+    if value not in choices:
+        raise ConfigError(f"{key} must be one of {list(choices)}, got {value!r}")
+    return value
+
+
 def resolved(cfg: DictConfig) -> dict:
     """The config as plain data, without Hydra's own node (which holds machine paths)."""
     return OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)

@@ -54,9 +54,11 @@ def context_episodes(manifest, stage, contract: TaskContract, scale: str, worlds
         if keys is None:
             raise ConfigError(f"{path} does not list the episodes it held out; retrain it to pair on its episodes")
         held[path] = set(keys)
-    expert_only = bool(read_config(worldsim)["meta"].get("expert_only", False))
-    try:
-        paths = collected_episodes(manifest, stage, contract.name, scale, expert_only)
+    wmeta = read_config(worldsim)["meta"]
+    expert_only = bool(wmeta.get("expert_only", False))
+    try:  # the collections the world model read (its held-out list names episodes of those)
+        paths = collected_episodes(manifest, stage, contract.name, scale, expert_only,
+                                   wmeta.get("policy_collections", "latest"))
     except MissingEpisodesError:  # released checkpoints beside a re-collected expert set: contexts from the demos
         log.info("no policy rollouts collected here: mid-episode contexts from the expert demos only")
         paths = collected_episodes(manifest, stage, contract.name, scale, True)

@@ -37,7 +37,7 @@ from stages.post_train_loop.training import (Rollouts, check_pack, collector, pa
 from worldenv_core.envs.tasks import contract_task_ids
 from worldenv_core.distributed import is_main, launched
 from worldenv_core.files import write_text_atomic
-from worldenv_core.data.selection import collected_episodes
+from worldenv_core.data.selection import POLICY_COLLECTIONS, collected_episodes
 from worldenv_core.imagination.context_pack import read_context_pack
 from worldenv_core.imagination.env import check_depth
 from worldenv_core.manifest import StageRun
@@ -48,8 +48,8 @@ from worldenv_core.rl.filtered_bc import SuccessBuffer
 from worldenv_core.rl.loop import OPTIMIZERS, check_success_range, make_optimizer
 from worldenv_core.rl.real_rollouts import retire
 from worldenv_core.rl.termination import check_eta
-from worldenv_core.stage import (ConfigError, positive_int, require_task, resolve_checkpoint, resolve_policy, resolved,
-                                 start, task_contract, work_dir)
+from worldenv_core.stage import (ConfigError, one_of, positive_int, require_task, resolve_checkpoint, resolve_policy,
+                                 resolved, start, task_contract, work_dir)
 from worldenv_core.tracking import make_tracker
 from worldenv_core.training import Trainer, pick_device, planned_steps, planned_total
 
@@ -74,7 +74,7 @@ RL_DEFAULTS = {"mid_episode_frames": 0, "verdicts": "own", "contexts": "episodes
                "es_discount": 1.0, "es_parameters": "mean", "es_ledger_from": None, "task_focus": None,
                "es_min_mixed": 1, "context_depth": [0.0, 1.0]}
 # top-level settings added later, kept out of the settings hash and work dir at these values
-LATER_DEFAULTS = {"contexts_to": None, "contexts_from": None, "minutes": None}
+LATER_DEFAULTS = {"contexts_to": None, "contexts_from": None, "minutes": None, "policy_collections": "latest"}
 
 
 def validate(cfg: DictConfig) -> None:
@@ -95,6 +95,7 @@ def validate(cfg: DictConfig) -> None:
     positive_int(cfg, "eval.record_contexts", allow_zero=True)
     positive_int(cfg, "eval.paired_contexts", allow_zero=True)
     positive_int(cfg, "rl.mid_episode_frames", allow_zero=True)
+    one_of(cfg, "policy_collections", POLICY_COLLECTIONS)
     if cfg.eval.imagined_contexts and cfg.eval.imagined_rollouts < 2:
         raise ConfigError(f"eval.imagined_rollouts must be at least 2, got {cfg.eval.imagined_rollouts}")
     if not isinstance(cfg.rl.n_rollouts, int) or cfg.rl.n_rollouts < 2:
@@ -219,7 +220,7 @@ def run(cfg: DictConfig) -> dict:
         policy, pmeta = load_checkpoint(policy_path, "policy", contract, device=str(device))
         fresh = rl.contexts == "placements"  # no collected episode needed: every context a new scene
         episodes = [] if fresh or packed else collected_episodes(manifest, stage, contract.name, cfg.scale.name,
-                                                                 cfg.expert_only)
+                                                                 cfg.expert_only, cfg.policy_collections)
         worldsim_path, reflector_path = (None, None) if real else (
             resolve_checkpoint(stage, cfg.worldsim_from, "train_worldsim", contract.name, cfg.scale.name),
             resolve_checkpoint(stage, cfg.reflector_from, "train_reflector", contract.name, cfg.scale.name))

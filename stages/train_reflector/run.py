@@ -18,14 +18,14 @@ from omegaconf import DictConfig, OmegaConf
 
 from stages.train_reflector.evaluation import evaluate_held_out, headline
 from stages.train_reflector.training import cross_validate_eta, fit, imagined_copies
-from worldenv_core.data.selection import collected_episodes, episode_key, load_split
+from worldenv_core.data.selection import POLICY_COLLECTIONS, collected_episodes, episode_key, load_split
 from worldenv_core.imagination.pairs import calibration_rows, calibration_starts, checked_episodes, eta_on_pairs
 from worldenv_core.imagination.verdict import ETA_GRID, rescored
 from worldenv_core.manifest import StageRun
 from worldenv_core.models.checkpoint import save_model
 from worldenv_core.rl.termination import check_eta
 from worldenv_core.models.text import InstructionEncoder
-from worldenv_core.stage import (ConfigError, positive_int, require_task, resolve_checkpoint, resolved, start,
+from worldenv_core.stage import (ConfigError, one_of, positive_int, require_task, resolve_checkpoint, resolved, start,
                                  task_contract, work_dir)
 from worldenv_core.training import pick_device, record_checkpoint, trainer_options
 from worldenv_core.viz import plot_history
@@ -40,6 +40,7 @@ def validate(cfg: DictConfig) -> None:
         positive_int(cfg, key)
     positive_int(cfg, "train.label_delay", allow_zero=True)
     positive_int(cfg, "eta_folds", allow_zero=True)
+    one_of(cfg, "policy_collections", POLICY_COLLECTIONS)
     if cfg.eta_folds == 1:
         raise ConfigError("eta_folds must be 0 (eta as configured) or at least 2 (K-fold cross-validation), got 1")
     try:
@@ -86,11 +87,13 @@ def run(cfg: DictConfig) -> dict:
     manifest = start(cfg, validate)
     contract = task_contract(cfg)
     device = pick_device(cfg.device)
-    config = resolved(cfg)
+    # policy_collections came later: at its default a run keeps its settings hash and work dir
+    config = {k: v for k, v in resolved(cfg).items() if not (k == "policy_collections" and v == "latest")}
     tags = {"task": contract.name, "scale": cfg.scale.name, "data": "expert" if cfg.expert_only else "expert+policy",
             "hard_negatives": "mined" if cfg.train.mine.every else "off"}
     with StageRun(manifest, "train_reflector", tags, config) as stage:
-        paths = collected_episodes(manifest, stage, contract.name, cfg.scale.name, cfg.expert_only)
+        paths = collected_episodes(manifest, stage, contract.name, cfg.scale.name, cfg.expert_only,
+                                   cfg.policy_collections)
         train_paths, held, episodes, held_eps = load_split(paths, cfg.holdout_every, cfg.camera)
         key = {k: v for k, v in config.items() if k not in ("imagined", "plots", "eta_folds")}
         # train.with_imagined is named by the world model it imagines with (below), if on; pairs_from by

@@ -27,14 +27,14 @@ from stages.train_worldsim.evaluation import evaluate_fidelity, write_replays
 from stages.train_worldsim.training import (ae_phase, episode_chunks, flow_phase, fresh_velocity, rollout_phase,
                                             snapshots)
 from worldenv_core.contract import TaskContract
-from worldenv_core.data.selection import collected_episodes, episode_key, load_split
+from worldenv_core.data.selection import POLICY_COLLECTIONS, collected_episodes, episode_key, load_split
 from worldenv_core.kinematics.camera import PinholeCamera
 from worldenv_core.kinematics.next_state import NextStateModel
 from worldenv_core.manifest import StageRun
 from worldenv_core.models.checkpoint import load_checkpoint, read_config
 from worldenv_core.models.latent_pack import read_latent_pack, write_latent_pack
 from worldenv_core.models.worldsim_data import encode_episode_frames
-from worldenv_core.stage import (ConfigError, positive_int, require_task, resolve_checkpoint, resolved, start,
+from worldenv_core.stage import (ConfigError, one_of, positive_int, require_task, resolve_checkpoint, resolved, start,
                                  task_contract, work_dir)
 from worldenv_core.tracking import make_tracker
 from worldenv_core.training import Trainer, pick_device, planned_steps, planned_total, trainer_options
@@ -44,7 +44,7 @@ BATCHES = ("ae.batch_size", "flow.batch_size", "rollout.batch_size")
 ON_A_MODEL = ("latents_to", "latents_from", "fresh_width", "minutes")  # settings that go on from init_from's model
 # settings added after runs were made: at these values a run keeps its record's settings hash and work dir
 LATER_DEFAULTS = {"latents_to": None, "latents_from": None, "latents_every": 1, "fresh_width": None, "minutes": None,
-                  "snapshots": 1}
+                  "snapshots": 1, "policy_collections": "latest"}
 
 
 def validate(cfg: DictConfig) -> None:
@@ -54,6 +54,7 @@ def validate(cfg: DictConfig) -> None:
         positive_int(cfg, key)
     positive_int(cfg, "rollout.steps", allow_zero=True)
     positive_int(cfg, "rollout.chunks", allow_zero=True)  # 0: teacher-forced, e.g. a fresh flow network first
+    one_of(cfg, "policy_collections", POLICY_COLLECTIONS)
     positive_int(cfg, "rollout.batch_size")
     trainer_options(cfg, *BATCHES)
     given = [k for k in ON_A_MODEL if cfg.get(k) is not None]
@@ -99,7 +100,8 @@ def run(cfg: DictConfig) -> dict:
         base = (resolve_checkpoint(stage, cfg.init_from, "train_worldsim", contract.name, cfg.scale.name)
                 if cfg.init_from else None)
         base_model, base_meta = load_checkpoint(base, "worldsim", contract) if base else (None, None)
-        paths = [] if packed else collected_episodes(manifest, stage, contract.name, cfg.scale.name, cfg.expert_only)
+        paths = [] if packed else collected_episodes(manifest, stage, contract.name, cfg.scale.name, cfg.expert_only,
+                                                     cfg.policy_collections)
         pack = read_latent_pack(cfg.latents_from, base).every(cfg.latents_every) if packed else None
         pack_file = None
         if packed:  # by content: another pack is another training, the same one a resume
@@ -144,7 +146,8 @@ def run(cfg: DictConfig) -> dict:
         prior = 0 if cfg.fresh_width or not base else int(base_meta.get("rollout_steps") or 0)
         meta = {"kind": "worldsim", **contract.meta(), "camera": cfg.camera, "kinematics": kinematics.to_dict(),
                 "cameras": {str(t): c.to_dict() for t, c in cameras.items()}, "episodes": len(episodes),
-                "expert_only": bool(cfg.expert_only), "held_out": held, "rollout_steps": prior + int(cfg.rollout.steps),
+                "expert_only": bool(cfg.expert_only), "policy_collections": cfg.policy_collections, "held_out": held,
+                "rollout_steps": prior + int(cfg.rollout.steps),
                 **({"init_from_step": None if cfg.fresh_width else base_meta.get("step")} if base else {}),
                 **({"trained_from": {"latent_pack": key["latents_from"][:12], "every": cfg.latents_every,
                                      "fresh_width": cfg.fresh_width}} if packed else {})}

@@ -1,5 +1,15 @@
 """Shared stage helpers."""
-from worldenv_core.stage import work_dir
+import pytest
+from omegaconf import OmegaConf
+
+from worldenv_core.stage import ConfigError, one_of, work_dir
+
+
+def test_a_choice_outside_its_set_is_named_with_the_choices():
+    cfg = OmegaConf.create({"policy_collections": "every", "rl": {"contexts": "episodes"}})
+    assert one_of(cfg, "rl.contexts", ("episodes", "placements")) == "episodes"
+    with pytest.raises(ConfigError, match=r"policy_collections must be one of \['latest', 'all'\], got 'every'"):
+        one_of(cfg, "policy_collections", ("latest", "all"))
 
 
 def test_work_dir_depends_on_settings_and_inputs_not_their_order():

@@ -26,26 +26,46 @@ class MissingEpisodesError(ArtefactError):
     """A stage needs a collection the experiment does not have yet."""
 
 
-def collected_episodes(manifest: Manifest, stage: StageRun, task: str, scale: str, expert_only: bool) -> list[Path]:
-    """The latest expert collection of this task and scale, plus the latest policy collection
-    unless `expert_only` (the paper's "w/o extra data" ablation); sorted paths.
+POLICY_COLLECTIONS = ("latest", "all")  # the `policy_collections` setting of the stages that read collections
 
-    Latest, not all: collections with the same seed and policy hold the same rollouts (episode
-    seeds depend on seed, task and index only; a rerun with `post_success_steps` only extends
-    them), so a union would count episodes twice and put copies on both sides of the held-out
+
+def collected_episodes(manifest: Manifest, stage: StageRun, task: str, scale: str, expert_only: bool,
+                       policy_collections: str = "latest") -> list[Path]:
+    """The latest expert collection of this task and scale, plus policy rollouts unless `expert_only`
+    (the paper's "w/o extra data" ablation); sorted paths. `policy_collections`: "latest", the newest
+    policy collection; "all", the newest record of every policy collection folder (each policy and noise
+    scale collects into its own: the SFT policy's rollouts and, after a refit round, the improved
+    policy's, or exploration data at several noise scales), every one recorded as an input.
+
+    Newest per folder, not every record: collections with the same seed and policy hold the same
+    rollouts (episode seeds depend on seed, task and index only; a rerun with `post_success_steps` only
+    extends them), so a union would count episodes twice and put copies on both sides of the held-out
     split. More rollouts come from a larger `episodes_per_task` into the same collection."""
+    if policy_collections not in POLICY_COLLECTIONS:
+        raise ValueError(f"policy_collections must be one of {list(POLICY_COLLECTIONS)}, got {policy_collections!r}")
     tags = {"task": task, "scale": scale}
     paths = stage.use(manifest.latest("collect", source="expert", **tags), kind="episodes")
     if not expert_only:
-        try:
-            record = manifest.latest("collect", source="policy", **tags)
-        except ArtefactError:
+        records = manifest.find("collect", source="policy", **tags)
+        if not records:
             raise MissingEpisodesError(
                 f"no policy rollouts of task {task} at scale {scale} in {manifest.path}; collect them first "
                 f"(`python -m stages.collect +task={task} source=policy`) or use expert data only with "
-                "expert_only=true") from None
-        paths += stage.use(record, kind="episodes")
+                "expert_only=true")
+        for record in newest_per_folder(records) if policy_collections == "all" else records[-1:]:
+            paths += stage.use(record, kind="episodes")
     return sorted(paths)
+
+
+def newest_per_folder(records: list) -> list:
+    """The newest of each collection folder's records (records oldest first), in the order of their newest."""
+    newest = {}
+    for r in records:
+        folders = {Path(a.path).parts[-3] for a in r.files("episodes")}  # <collection>/taskNN/<file>
+        for folder in folders:
+            newest.pop(folder, None)
+            newest[folder] = r
+    return list({r.id: r for r in newest.values()}.values())
 
 
 def holdout_split(paths: list[Path], every: int) -> tuple[list[Path], list[Path]]:

@@ -79,7 +79,8 @@ def test_loop_resumes_and_rejects_bad_settings(trained):
         post_train_loop(cfg("post_train_loop", exp, *LOOP, "eval.imagined_rollouts=1"))
     for override, match in (("rl.n_rollouts=1", "at least 2"), ("eta=1.5", r"eta .* must be in \[0, 1\]"),
                             ("rl.epsilon=0", "epsilon .* must be > 0"), ("rl.target_kl=0", "target_kl must be > 0"),
-                            ("rl.verdicts=shuffled", r"rl.verdicts must be one of \['own', 'permuted'\]")):
+                            ("rl.verdicts=shuffled", r"rl.verdicts must be one of \['own', 'permuted'\]"),
+                            ("policy_collections=every", r"policy_collections must be one of \['latest', 'all'\]")):
         with pytest.raises(ConfigError, match=match):
             post_train_loop(cfg("post_train_loop", exp, *LOOP, override))
 
@@ -493,3 +494,21 @@ def test_evolution_strategies_in_weight_space_on_real_and_imagined_rollouts(trai
     assert step3["train_episodes"] == 0 and step3["rollout_imagination_seconds"] > 0
     with pytest.raises(ConfigError, match="rl.contexts=placements draws fresh scenes in the real simulator"):
         post_train_loop(cfg("post_train_loop", exp, *LOOP, "rl=es"))
+
+
+def test_the_post_trained_policys_rollouts_collect_into_a_folder_named_by_that_policy(trained):
+    """A refit round collects the post-trained policy's rollouts: `policy_from=post_trained` names the checkpoint it
+    resolved to in the folder, so a later round (another post-trained policy) never resumes into this one."""
+    from stages.collect.episodes import episode_dir
+    from stages.collect.run import run as collect
+
+    exp, _ = trained
+    rollouts = ["source=policy", "episodes_per_task=1", "workers=1", "progress=false", "lerobot_export=false",
+                "task.max_steps=16"]
+    out = collect(cfg("collect", exp, *rollouts, "policy_from=post_trained"))
+    m = Manifest(exp)
+    post = m.latest("post_train_loop", task="tiny")
+    assert post.id in m.latest("collect", task="tiny", source="policy").inputs and out["collection"]["kept"] == 1
+    checkpoint = Path(m.resolve(post)[0]).parent.resolve().relative_to(m.root).as_posix()
+    assert out["collection"]["episode_dir"] == str(episode_dir(cfg("collect", exp, *rollouts, f"policy_from={checkpoint}")))
+    assert out["collection"]["episode_dir"] != str(episode_dir(cfg("collect", exp, *rollouts, "policy_from=post_trained")))

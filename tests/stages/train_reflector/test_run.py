@@ -146,3 +146,26 @@ def test_lerobots_reward_classifier_trains_as_the_reflector_and_stops_an_evaluat
                        "progress=false", f"reflector_from={folder}", "videos_per_task=0"))
     (ep,) = json.loads((Path(out["report_dir"]) / "episodes.json").read_text())
     assert ep["stop_step"] == ep["steps"] == 0  # eta = 0: its first verdict (> 0) stops the episode
+
+
+def test_a_refit_round_trains_on_every_policy_collection_each_counted(with_policy):
+    """A refit round of the imagined route: an improved policy's rollouts (here a second noise scale) collect into
+    a folder of their own; `policy_collections=all` trains on the newest of every folder, each an input whose real
+    episodes count, where the default reads only the newest collection."""
+    from stages.collect.run import run as collect
+
+    exp = with_policy
+    rollouts = ["source=policy", "episodes_per_task=1", "workers=1", "progress=false", "lerobot_export=false",
+                "task.max_steps=16"]
+    for noise in ("1.0", "3.0"):
+        collect(cfg("collect", exp, *rollouts, f"noise_scale={noise}"))
+    m = Manifest(exp)
+    policy = {r.id for r in m.find("collect", task="tiny", source="policy")}
+    assert len(policy) == 2
+    both = train_reflector(cfg("train_reflector", exp, *SMALL, "policy_collections=all"))
+    rec = m.latest("train_reflector", task="tiny")
+    assert policy <= set(rec.inputs) and both["episodes"] + both["held_out"] == 2 + 2  # 2 demos, 1 rollout each
+    assert sum(m.get(i).metrics["real_episodes"] for i in rec.inputs if i in policy) == 2
+    newest = train_reflector(cfg("train_reflector", exp, *SMALL))
+    assert len(policy & set(m.latest("train_reflector", task="tiny").inputs)) == 1
+    assert newest["episodes"] + newest["held_out"] == 2 + 1

@@ -26,6 +26,23 @@ def test_latest_expert_and_latest_policy_collection(tmp_path):
         assert collected_episodes(m, stage, "goal", "small", expert_only=True) == sorted(expert)
 
 
+def test_all_policy_collections_are_the_newest_of_each_folder(tmp_path):
+    """policy_collections=all (exploration at several noise scales, a refit round's improved policy): every
+    collection folder once, at its newest record, each an input; a rerun into one folder is not read twice."""
+    m = Manifest(tmp_path / "exp")
+    expert = _collect(m, tmp_path / "expert" / "task00", "expert", ["e0.mcap"])
+    _collect(m, tmp_path / "policy-sft" / "task00", "policy", ["p0.mcap"])
+    sft = _collect(m, tmp_path / "policy-sft" / "task00", "policy", ["p0.mcap", "p1.mcap"])  # the same, extended
+    improved = _collect(m, tmp_path / "policy-improved" / "task00", "policy", ["p0.mcap"])
+    with StageRun(m, "train_worldsim", {}, {}) as stage:
+        assert collected_episodes(m, stage, "goal", "small", False, "all") == sorted(expert + sft + improved)
+        assert len(stage.inputs) == 3  # the expert record and the newest of each policy folder
+    with StageRun(m, "train_worldsim", {}, {}) as stage:
+        assert collected_episodes(m, stage, "goal", "small", False) == sorted(expert + improved)  # "latest"
+        with pytest.raises(ValueError, match="policy_collections"):
+            collected_episodes(m, stage, "goal", "small", False, "newest")
+
+
 def test_missing_policy_rollouts_name_the_fix(tmp_path):
     m = Manifest(tmp_path / "exp")
     _collect(m, tmp_path / "expert", "expert", ["e0.mcap"])
