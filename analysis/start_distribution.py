@@ -1,0 +1,87 @@
+"""Where a task's fresh placements start against where the benchmark's 50 init states start.
+
+RL trains on fresh placements (`worldenv_core/envs/placements.py`) and is judged on the benchmark's init states, so
+a difference between the two is a difference between training and test. This compares, per task, each free
+object's position (x / y range and mean) and the arm's 7 joint angles (mean, standard deviation, and the gap of the
+means in standard errors) over the benchmark's init states and `--fresh` validation placements (their resets are
+real: ~3 s each).
+
+    python -m analysis.start_distribution --suite libero_spatial --task 5 --fresh 40
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from worldenv_core.cli import user_errors
+from worldenv_core.errors import ConfigError
+from worldenv_core.report import markdown_table
+
+
+def mean_gap(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per column: mean(b) - mean(a), and that gap in standard errors of the difference of the means."""
+    gap = b.mean(0) - a.mean(0)
+    se = np.sqrt(a.var(0, ddof=1) / len(a) + b.var(0, ddof=1) / len(b))
+    return gap, np.divide(gap, se, out=np.zeros_like(gap), where=se > 0)
+
+
+def compare(bench: np.ndarray, fresh: np.ndarray, objects: dict[str, int], arm: list[int]) -> list[list]:
+    """Rows of the table: flat MuJoCo states ([time, qpos, qvel]) of the benchmark and of fresh placements;
+    `objects`: a free joint's name -> its qpos address; `arm`: the arm joints' qpos addresses."""
+    rows = []
+    for name, a in objects.items():
+        for axis, k in (("x", 0), ("y", 1)):
+            col_b, col_f = bench[:, 1 + a + k], fresh[:, 1 + a + k]
+            gap, z = mean_gap(col_b[:, None], col_f[:, None])
+            rows.append([f"{name} {axis}", f"[{col_b.min():.3f}, {col_b.max():.3f}]", f"[{col_f.min():.3f}, {col_f.max():.3f}]",
+                         f"{gap[0]:+.4f}", f"{z[0]:+.1f}"])
+    cols = [1 + a for a in arm]
+    gap, z = mean_gap(bench[:, cols], fresh[:, cols])
+    for i, c in enumerate(cols):
+        rows.append([f"arm joint {i + 1}", f"{bench[:, c].mean():.3f} +- {bench[:, c].std(ddof=1):.3f}",
+                     f"{fresh[:, c].mean():.3f} +- {fresh[:, c].std(ddof=1):.3f}", f"{gap[i]:+.4f}", f"{z[i]:+.1f}"])
+    return rows
+
+
+def measure(suite: str, task: int, n_fresh: int) -> str:
+    from worldenv_core.envs.libero_env import LiberoEnv
+    from worldenv_core.envs.placements import placement_seeds
+    from worldenv_core.envs.tasks import init_states
+
+    env = LiberoEnv(suite, task, render=False)
+    model = env.sim.model
+    objects = {}
+    for j in range(model.njnt):
+        name = model.joint_id2name(j)
+        addr = model.get_joint_qpos_addr(name) if name else None
+        if isinstance(addr, tuple) and addr[1] - addr[0] == 7:  # a free joint: an object placed by the sampler
+            objects[name.removesuffix("_joint0")] = addr[0]
+    arm = [model.get_joint_qpos_addr(f"robot0_joint{i}") for i in range(1, 8)]
+    fresh = []
+    for _, seed in placement_seeds(suite, [task], n_fresh, "validation"):
+        env.reset(seed=seed)
+        fresh.append(env.sim.get_state().flatten())  # env.sim: a hard reset builds a new one
+    env.close()
+    rows = compare(init_states(suite, task), np.array(fresh), objects, arm)
+    return "\n".join(markdown_table(["", "benchmark (50 init states)", f"fresh placements ({n_fresh})",
+                                      "gap of the means", "gap / standard error"], rows))
+
+
+def main(argv=None) -> str:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--suite", default="libero_spatial")
+    ap.add_argument("--task", type=int, required=True)
+    ap.add_argument("--fresh", type=int, default=40, help="validation placements to reset (~3 s each)")
+    args = ap.parse_args(argv)
+    with user_errors():
+        if args.fresh < 2:
+            raise ConfigError(f"--fresh must be at least 2 (a standard deviation), got {args.fresh}")
+        out = measure(args.suite, args.task, args.fresh)
+        print(out)
+        return out
+
+
+if __name__ == "__main__":
+    main()
