@@ -103,8 +103,9 @@ def run(cfg: DictConfig) -> dict:
         policy_path = resolve_policy(cfg, stage) if cfg.source == "policy" and cfg.episodes_per_task > 0 else None
         if policy_path and cfg.policy_from == "post_trained":  # its folder names the policy it resolved to, so two
             # refit rounds (each after its own LOOP) never collect into one folder (a resume there would skip episodes)
-            cfg.policy_from = Path(policy_path).resolve().relative_to(manifest.root).as_posix() \
-                if Path(policy_path).resolve().is_relative_to(manifest.root) else Path(policy_path).name
+            where = Path(policy_path).resolve()
+            inside = where.is_relative_to(manifest.root)
+            cfg.policy_from = where.relative_to(manifest.root).as_posix() if inside else where.name
         # a re-run of `make pipeline`: nothing to redo, if the episodes would go to the same folder (its name
         # also holds the expert's code hash, which the config does not)
         folder = str(episode_dir(cfg)) if cfg.source in ("expert", "policy") and cfg.episodes_per_task > 0 else None

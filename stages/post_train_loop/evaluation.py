@@ -22,7 +22,7 @@ from worldenv_core.files import write_text_atomic
 from worldenv_core.manifest import StageRecord, sha256_file
 from worldenv_core.parallel import default_workers, run_jobs
 from worldenv_core.report import ReportContext, markdown_table, short_run, titled
-from worldenv_core.imagination.env import Context
+from worldenv_core.imagination.env import WHOLE_DEPTH, Context, context_depth
 from worldenv_core.imagination.recording import record_imagined_rollouts, write_imagined_rollouts
 from worldenv_core.imagination.verdict import imagine, pair, terminal_reward, verdict_metrics
 from worldenv_core.viz import plot_history
@@ -220,8 +220,8 @@ def section(ctx: ReportContext, limit: int = 6) -> list[str]:
 def env_label(run: StageRecord) -> str:
     """The run's environment, and where its rollouts start when not at the episodes' first frames."""
     rl = run.config.get("rl") or {}
-    mid, depth = rl.get("mid_episode_frames"), rl.get("context_depth") or [0.0, 1.0]
-    at = f" at {depth[0]:g}-{depth[1]:g} of the way" if [float(x) for x in depth] != [0.0, 1.0] else ""
+    mid, depth = rl.get("mid_episode_frames"), context_depth(rl)
+    at = f" at {depth[0]:g}-{depth[1]:g} of the way" if depth != WHOLE_DEPTH else ""
     return run.tags.get("env", "imagined") + (f", {mid} mid-episode frames{at}" if mid else "")
 
 

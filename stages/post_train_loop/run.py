@@ -39,7 +39,7 @@ from worldenv_core.distributed import is_main, launched
 from worldenv_core.files import write_text_atomic
 from worldenv_core.data.selection import POLICY_COLLECTIONS, collected_episodes
 from worldenv_core.imagination.context_pack import read_context_pack
-from worldenv_core.imagination.env import check_depth
+from worldenv_core.imagination.env import WHOLE_DEPTH, context_depth
 from worldenv_core.manifest import StageRun
 from worldenv_core.models.checkpoint import load_checkpoint, read_config
 from worldenv_core.models.laplace import EXPLORATION
@@ -72,7 +72,7 @@ RL_DEFAULTS = {"mid_episode_frames": 0, "verdicts": "own", "contexts": "episodes
                "critic_minibatch": 256, "critic_lr": 1e-3, "critic_hidden": 256, "critic_replay": 0,
                "exploration": "step", "es_pairs": 8, "es_sigma": 0.05, "es_step": 0.05, "es_top": None,
                "es_discount": 1.0, "es_parameters": "mean", "es_ledger_from": None, "task_focus": None,
-               "es_min_mixed": 1, "context_depth": [0.0, 1.0]}
+               "es_min_mixed": 1, "context_depth": list(WHOLE_DEPTH)}
 # top-level settings added later, kept out of the settings hash and work dir at these values
 LATER_DEFAULTS = {"contexts_to": None, "contexts_from": None, "minutes": None, "policy_collections": "latest"}
 
@@ -129,10 +129,10 @@ def validate(cfg: DictConfig) -> None:
     if cfg.rl.contexts not in CONTEXTS:
         raise ConfigError(f"rl.contexts must be one of {list(CONTEXTS)}, got {cfg.rl.contexts!r}")
     try:
-        depth = check_depth(cfg.rl.get("context_depth") or [0.0, 1.0])
+        depth = context_depth(cfg.rl)
     except ValueError as e:
         raise ConfigError(f"rl.context_depth: {e}") from None
-    if depth != (0.0, 1.0) and not cfg.rl.mid_episode_frames:
+    if depth != WHOLE_DEPTH and not cfg.rl.mid_episode_frames:
         raise ConfigError(f"rl.context_depth={list(depth)} chooses where mid-episode frames lie: set rl.mid_episode_frames "
                           f"> 0 (episode starts are each episode's first frame)")
     if cfg.rl.contexts == "placements" and (cfg.env != "real" or cfg.rl.mid_episode_frames):

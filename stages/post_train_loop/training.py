@@ -26,7 +26,7 @@ from worldenv_core.contract import TaskContract
 from worldenv_core.envs.replay import RealStart, unreplayable
 from worldenv_core.errors import ConfigError
 from worldenv_core.imagination.context_pack import ContextPack, write_context_pack
-from worldenv_core.imagination.env import Context, build_imagined_env, mid_episode_frames
+from worldenv_core.imagination.env import WHOLE_DEPTH, Context, build_imagined_env, context_depth, mid_episode_frames
 from worldenv_core.models.checkpoint import read_config, save_model
 from worldenv_core.rl.critic import ChunkValue
 from worldenv_core.rl.filtered_bc import SuccessBuffer, bc_update
@@ -42,7 +42,7 @@ log = logging.getLogger("worldenv.post_train_loop")
 Collect = Callable[[torch.nn.Module, list[int], list[torch.Generator]], RolloutBatch]
 
 
-def episode_starts(paths: list[Path], cameras: list[str], mid_frames: int, depth=(0.0, 1.0)):
+def episode_starts(paths: list[Path], cameras: list[str], mid_frames: int, depth=WHOLE_DEPTH):
     """(episode, where it starts in the real simulator) for each start frame of each collected
     episode: its first frame (the paper), or with `rl.mid_episode_frames` = mid_frames > 0, that many
     frames spread over its part before the first success (the `rl.context_depth` fraction of it)."""
@@ -55,7 +55,7 @@ def episode_starts(paths: list[Path], cameras: list[str], mid_frames: int, depth
 
 
 def contexts_from_episodes(paths: list[Path], camera: str, mid_frames: int = 0,
-                           depth=(0.0, 1.0)) -> tuple[list[Context], list[RealStart]]:
+                           depth=WHOLE_DEPTH) -> tuple[list[Context], list[RealStart]]:
     """LOOP's contexts (frame, proprio and instruction at each start frame of each collected
     episode) and where each starts in the real simulator (the paired replays at evaluations)."""
     pairs = [(Context.from_episode(ep, camera, st.frame), st)
@@ -63,17 +63,11 @@ def contexts_from_episodes(paths: list[Path], camera: str, mid_frames: int = 0,
     return [c for c, _ in pairs], [st for _, st in pairs]
 
 
-def real_starts(paths: list[Path], mid_frames: int = 0, depth=(0.0, 1.0)) -> tuple[list[RealStart], list[str]]:
+def real_starts(paths: list[Path], mid_frames: int = 0, depth=WHOLE_DEPTH) -> tuple[list[RealStart], list[str]]:
     """The same contexts in the real simulator (`env=real`): each start (its episode's scene rebuilt
     from its seed, its actions replayed up to the start frame), and its instruction."""
     pairs = [(st, ep.meta.instruction) for ep, st in episode_starts(paths, [], mid_frames, depth)]
     return [st for st, _ in pairs], [i for _, i in pairs]
-
-
-def context_depth(rl) -> tuple[float, float]:
-    """`rl.context_depth` as (lo, hi); runs and packs from before the setting: the whole part before success."""
-    depth = rl.get("context_depth")
-    return (0.0, 1.0) if depth is None else tuple(float(x) for x in depth)
 
 
 def imagined_collector(env, contexts: list[Context], n_rollouts: int, encode, noise_scale: float = 1.0,
@@ -351,7 +345,7 @@ def check_pack(cfg: DictConfig, contract: TaskContract, pack: ContextPack, where
     if frames != cfg.rl.mid_episode_frames:
         raise ConfigError(f"{where} was packed with rl.mid_episode_frames={frames}, this run has "
                           f"rl.mid_episode_frames={cfg.rl.mid_episode_frames}: pack again or set it")
-    depth = [float(x) for x in pack.settings.get("context_depth", [0.0, 1.0])]  # packs before it: the whole part
-    if frames and depth != list(context_depth(cfg.rl)):
-        raise ConfigError(f"{where} was packed with rl.context_depth={depth}, this run has "
-                          f"rl.context_depth={list(context_depth(cfg.rl))}: pack again or set it")
+    packed, mine = context_depth(pack.settings), context_depth(cfg.rl)
+    if frames and packed != mine:
+        raise ConfigError(f"{where} was packed with rl.context_depth={list(packed)}, this run has "
+                          f"rl.context_depth={list(mine)}: pack again or set it")

@@ -58,13 +58,11 @@ def collected_episodes(manifest: Manifest, stage: StageRun, task: str, scale: st
 
 
 def newest_per_folder(records: list) -> list:
-    """The newest of each collection folder's records (records oldest first), in the order of their newest."""
+    """The newest record of each collection folder (records oldest first)."""
     newest = {}
-    for r in records:
-        folders = {Path(a.path).parts[-3] for a in r.files("episodes")}  # <collection>/taskNN/<file>
-        for folder in folders:
-            newest.pop(folder, None)
-            newest[folder] = r
+    for r in records:  # a later record of a folder replaces the earlier one
+        for a in r.files("episodes"):
+            newest[Path(a.path).parts[-3]] = r  # <collection>/taskNN/<file>
     return list({r.id: r for r in newest.values()}.values())
 
 

@@ -35,8 +35,11 @@ class Context:
                    proprio=torch.from_numpy(ep.proprio[t]))
 
 
+WHOLE_DEPTH = (0.0, 1.0)  # rl.context_depth's default: the whole part of an episode before its success
+
+
 def mid_episode_frames(success: np.ndarray, length: int, n: int,
-                       depth: tuple[float, float] = (0.0, 1.0)) -> list[int]:
+                       depth: tuple[float, float] = WHOLE_DEPTH) -> list[int]:
     """n (>= 0) frames spread over the part of an episode before its first success (the task not yet
     done, so there is something left to judge), avoiding the first and the success frame. `depth`
     (lo, hi): only the fraction lo..hi of that part (e.g. (1/3, 1): where the imagined verdict is
@@ -45,6 +48,11 @@ def mid_episode_frames(success: np.ndarray, length: int, n: int,
     hits = np.flatnonzero(success)
     end = int(hits[0]) if len(hits) else length
     return sorted({int(round(end * (lo + (hi - lo) * (i + 1) / (n + 1)))) for i in range(n)} - {0, end})
+
+
+def context_depth(settings) -> tuple[float, float]:
+    """`context_depth` of a run's rl settings or a context pack's, checked (before the setting: the whole part)."""
+    return check_depth(settings.get("context_depth") or WHOLE_DEPTH)
 
 
 def check_depth(depth) -> tuple[float, float]:
