@@ -204,6 +204,7 @@ class LiberoEnv:
         # mj_step leaves body poses one substep behind the state it reports; forward() syncs
         # them so a live render equals a render replayed from the recorded state, bit for bit.
         self.sim.forward()
+        self._gl_current()
         out = {}
         for cam in cameras or self.cameras:
             img = self.sim.render(width=self.image_size, height=self.image_size, camera_name=cam)
@@ -225,8 +226,21 @@ class LiberoEnv:
                 frames[cam].append(img)
         return {c: np.stack(v) for c, v in frames.items()}
 
+    def _gl_current(self):
+        """Make this env's GL context current and return its render context. robosuite makes a
+        context current only when it builds one, so once another env is built in this process (or one
+        is closed: eglReleaseThread), this env would render its poses with the other model's meshes and
+        textures, silently."""
+        ctx = self.sim._render_context_offscreen
+        ctx.gl_ctx.make_current()
+        return ctx
+
     def close(self) -> None:
         with contextlib.suppress(Exception):
+            if self.can_render:
+                # free the GL objects in their own context: freed later (robosuite's __del__, at garbage
+                # collection), the same object ids would be deleted from whichever env's context is current
+                self._gl_current().con.free()
             self._env.close()
 
     def __enter__(self):

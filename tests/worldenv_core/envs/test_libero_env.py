@@ -104,3 +104,24 @@ def test_a_seed_names_one_scene_however_often_the_env_was_reset():
     other = env.reset(seed=1001).sim_state
     assert not np.array_equal(first[0], other)
     env.close()
+
+
+def test_an_env_renders_its_own_scene_after_other_envs_are_built_and_closed(tiny_env):
+    """robosuite renders into whichever GL context is current: the cached envs of a worker that
+    goes back to an earlier task rendered that task's poses with the newer env's meshes."""
+    from worldenv_core.envs.libero_env import LiberoEnv
+
+    tiny_env.reset(seed=3)
+    before = tiny_env.render(["agentview"])["agentview"]
+    other = LiberoEnv("libero_object", 1, cameras=["agentview"], image_size=64)
+    other.reset(seed=3)
+    other_before = other.render()["agentview"]
+    assert not np.array_equal(before, other_before)  # another scene
+    assert np.array_equal(tiny_env.render(["agentview"])["agentview"], before)  # was 120 grey levels off
+    third = LiberoEnv("libero_object", 2, cameras=["agentview"], image_size=64)
+    third.reset(seed=3)
+    third_before = third.render()["agentview"]
+    other.close()  # closing one env leaves the others' GL objects alone (it deleted the current one's)
+    assert np.array_equal(third.render()["agentview"], third_before)
+    assert np.array_equal(tiny_env.render(["agentview"])["agentview"], before)
+    third.close()
