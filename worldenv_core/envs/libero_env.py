@@ -153,6 +153,7 @@ class LiberoEnv:
             self._scenes.move_to_end(key)
             self._obs = restore_scene(self._env, self._scenes[key], seed)
             return self.observe()
+        self._free_gl()  # a hard reset rebuilds the render context: the old one goes in its own context
         self._env.seed(seed)
         samplers = getattr(self._env.env, "object_property_initializers", None)
         if samplers is not None:  # as after construction: this reset draws what a fresh env's first one draws
@@ -226,21 +227,24 @@ class LiberoEnv:
                 frames[cam].append(img)
         return {c: np.stack(v) for c, v in frames.items()}
 
-    def _gl_current(self):
-        """Make this env's GL context current and return its render context. robosuite makes a
-        context current only when it builds one, so once another env is built in this process (or one
-        is closed: eglReleaseThread), this env would render its poses with the other model's meshes and
-        textures, silently."""
-        ctx = self.sim._render_context_offscreen
-        ctx.gl_ctx.make_current()
-        return ctx
+    # robosuite makes a GL context current only when it builds one, and frees one (at a hard reset, at
+    # close, or later at garbage collection) in whichever context is current. With several envs in one
+    # process (a worker's cached envs), an env would render its poses with another model's meshes and
+    # textures, and freeing one would delete another's GL objects of the same ids, silently.
+    def _gl_current(self) -> None:
+        self.sim._render_context_offscreen.gl_ctx.make_current()
+
+    def _free_gl(self) -> None:
+        """Free this env's GL objects in its own context (LIBERO builds one even with render=False);
+        robosuite's own free, later, is then a no-op."""
+        ctx = getattr(self.sim, "_render_context_offscreen", None)
+        if ctx is not None:
+            ctx.gl_ctx.make_current()
+            ctx.con.free()
 
     def close(self) -> None:
         with contextlib.suppress(Exception):
-            if self.can_render:
-                # free the GL objects in their own context: freed later (robosuite's __del__, at garbage
-                # collection), the same object ids would be deleted from whichever env's context is current
-                self._gl_current().con.free()
+            self._free_gl()
             self._env.close()
 
     def __enter__(self):

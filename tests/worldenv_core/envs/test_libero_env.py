@@ -106,22 +106,27 @@ def test_a_seed_names_one_scene_however_often_the_env_was_reset():
     env.close()
 
 
-def test_an_env_renders_its_own_scene_after_other_envs_are_built_and_closed(tiny_env):
-    """robosuite renders into whichever GL context is current: the cached envs of a worker that
-    goes back to an earlier task rendered that task's poses with the newer env's meshes."""
+def test_an_env_renders_its_own_scene_after_other_envs_are_built_reset_and_closed(tiny_env):
+    """robosuite renders into whichever GL context is current and frees a context (hard reset, close)
+    in the current one: a worker's cached envs rendered another model's meshes, or lost their textures."""
     from worldenv_core.envs.libero_env import LiberoEnv
 
+    def look(env):
+        return env.render(["agentview"])["agentview"]
+
     tiny_env.reset(seed=3)
-    before = tiny_env.render(["agentview"])["agentview"]
-    other = LiberoEnv("libero_object", 1, cameras=["agentview"], image_size=64)
+    before = look(tiny_env)
+    other = LiberoEnv("libero_object", 1, cameras=["agentview"], image_size=64, scene_cache=4)
     other.reset(seed=3)
-    other_before = other.render()["agentview"]
+    other_before = look(other)
     assert not np.array_equal(before, other_before)  # another scene
-    assert np.array_equal(tiny_env.render(["agentview"])["agentview"], before)  # was 120 grey levels off
-    third = LiberoEnv("libero_object", 2, cameras=["agentview"], image_size=64)
-    third.reset(seed=3)
-    third_before = third.render()["agentview"]
-    other.close()  # closing one env leaves the others' GL objects alone (it deleted the current one's)
-    assert np.array_equal(third.render()["agentview"], third_before)
-    assert np.array_equal(tiny_env.render(["agentview"])["agentview"], before)
-    third.close()
+    assert np.array_equal(look(tiny_env), before)  # another env built since: was 120 grey levels off
+    other.reset(seed=4)  # a hard reset of another env rebuilds its context
+    assert np.array_equal(look(tiny_env), before)
+    physics = LiberoEnv("libero_object", 2, render=False)  # LIBERO builds a GL context for it too
+    look(other)
+    physics.close()  # closing one env leaves the current env's GL objects alone
+    other.reset(seed=3)  # a kept scene: a soft reset, the same context
+    assert np.array_equal(look(other), other_before)
+    assert np.array_equal(look(tiny_env), before)
+    other.close()
