@@ -3,7 +3,7 @@
 Rendering is the dominant cost of the simulator (STACK.md: ~13 ms per physics step against
 ~100 ms per 128 px camera render), so the env never renders on `step`; callers ask for images
 with `render()` exactly where they keep them (every frame of a kept demo, every chunk boundary
-of a policy). `render=False` builds the env without an offscreen renderer at all.
+of a policy). `render=False` refuses `render()` (LIBERO's env still builds a GL context for it).
 """
 
 from __future__ import annotations
