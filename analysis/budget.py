@@ -11,7 +11,10 @@ by side, filled where McNemar p < 0.05.
 
     python -m analysis.budget - --start results/s/evaluate-{A,B} \\
         --policy "LOOP, real simulator" 320 results/s/evaluate-C --policy "LOOP, real simulator" 1280 results/s/evaluate-D \\
-        --policy "LOOP, imagined" 250 results/s/evaluate-E [--json F] [--plot F.png]
+        --policy "LOOP, imagined" 250 results/s/evaluate-E [--json F] [--plot F.png] [--tasks-plot F.png]
+
+`--tasks-plot` draws each policy's success per task beside the start's (a grid, tasks across): a route whose
+steps lift some tasks and drop others shows there, where the pooled gain hides it.
 """
 
 from __future__ import annotations
@@ -37,13 +40,18 @@ def gains_by_budget(start: dict, policies: list[tuple[str, int, dict]]) -> dict:
     if not keys:
         raise ConfigError("the policies and the start share no episode (task, init state)")
     base = {k: start[k] for k in keys}
+    tasks = sorted({k[0] for k in keys})
+
+    def per_task(outcomes: dict) -> dict[int, float]:
+        return {t: float(np.mean([outcomes[k] for k in keys if k[0] == t])) for t in tasks}
     rows = []
     for route, cost, episodes in policies:
         g = paired_gain(base, episodes, keys)
         rows.append({"route": route, "real_episodes": int(cost), "success": float(np.mean([episodes[k] for k in keys])),
                      "gain": g["gain"], "gain_ci": g["ci"], "only_start": g["only_first"], "only_it": g["only_second"],
-                     "p_value": g["p_value"]})
-    return {"episodes": len(keys), "start": float(np.mean(list(base.values()))), "policies": rows}
+                     "p_value": g["p_value"], "per_task": per_task(episodes)})
+    return {"episodes": len(keys), "start": float(np.mean(list(base.values()))), "start_per_task": per_task(base),
+            "policies": rows}
 
 
 def markdown(result: dict) -> str:
@@ -84,6 +92,29 @@ def plot(result: dict, path: str) -> None:
     save_figure(fig, path)
 
 
+def tasks_plot(result: dict, path: str) -> None:
+    """Success per task: the start's row on top, then each policy's (labelled route, real episodes), with the
+    change against the start printed in each cell."""
+    from worldenv_core.viz import figure, save_figure
+
+    tasks = sorted(result["start_per_task"], key=int)
+    rows = [("start", result["start_per_task"])] + [(f"{r['route']}, {r['real_episodes']}", r["per_task"])
+                                                     for r in result["policies"]]
+    grid = np.array([[100 * row[t] for t in tasks] for _, row in rows])
+    fig, ax = figure(figsize=(1.0 + 0.55 * len(tasks), 0.8 + 0.32 * len(rows)))
+    ax.imshow(grid, cmap="viridis", vmin=0, vmax=100, aspect="auto")
+    for i in range(len(rows)):
+        for j in range(len(tasks)):
+            delta = "" if i == 0 else f"\n{grid[i, j] - grid[0, j]:+.0f}"
+            ax.text(j, i, f"{grid[i, j]:.0f}{delta}", ha="center", va="center", fontsize=6,
+                    color="white" if grid[i, j] < 55 else "black")
+    ax.set_xticks(range(len(tasks)), [f"task {t}" for t in tasks], fontsize=7)
+    ax.set_yticks(range(len(rows)), [name for name, _ in rows], fontsize=7)
+    ax.set_title("success per task, % (below: points against the start)", fontsize=9)
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("experiment_dir", help="where record ids are looked up ('-': only output folders are named)")
@@ -93,6 +124,7 @@ def main(argv: list[str] | None = None) -> dict:
                         "repeat per policy")
     p.add_argument("--json", help="also write the result here")
     p.add_argument("--plot", help="also draw each policy's gain against its real episodes here (.png)")
+    p.add_argument("--tasks-plot", help="also draw each policy's success per task beside the start's here (.png)")
     args = p.parse_args(argv)
     for entry in args.policy:
         if len(entry) < 3 or not entry[1].isdigit():
@@ -103,6 +135,8 @@ def main(argv: list[str] | None = None) -> dict:
     result = gains_by_budget(sides[0][0], [(e[0], int(e[1]), s[0]) for e, s in zip(args.policy, sides[1:])])
     result.update(records={"start": args.start, "policies": args.policy},
                   termination=sides[0][1]["termination"], suite=sides[0][1]["suite"])
+    if args.tasks_plot:
+        tasks_plot(result, args.tasks_plot)
     return emit(result, markdown(result), args.json, plot, args.plot)
 
 

@@ -35,6 +35,16 @@ def test_each_policy_gets_its_paired_gain_interval_and_mcnemar_against_the_start
     assert same["gain"] == 0 and same["gain_ci"] == [0, 0] and same["p_value"] == 1.0
 
 
+def test_per_task_success_shows_a_gain_on_one_task_paid_for_by_another():
+    start = outcomes([i % 2 == 0 for i in range(100)])  # 25 of 50 on each task
+    traded = dict(start)
+    traded.update({k: True for k in KEYS if k[0] == 0})  # task 0 all solved, task 1 none: the same pooled rate
+    traded.update({k: False for k in KEYS if k[0] == 1})
+    result = gains_by_budget(start, [("real", 320, traded)])
+    assert result["start_per_task"] == {0: 0.5, 1: 0.5}
+    assert result["policies"][0]["per_task"] == {0: 1.0, 1: 0.0} and result["policies"][0]["gain"] == 0
+
+
 def test_only_the_episodes_every_policy_and_the_start_ran_count():
     start = outcomes([1] * 100)
     half = {k: v for k, v in outcomes([0] * 100).items() if k[0] == 0}
@@ -58,11 +68,13 @@ def test_cli_pools_folders_writes_json_and_plot_and_names_bad_policies(tmp_path,
     result = main(["-", "--start", str(s / "evaluate-s0"), str(s / "evaluate-s1"),
                    "--policy", "real", "320", str(s / "evaluate-r10"), "--policy", "real", "1280", str(s / "evaluate-r40"),
                    "--policy", "imagined", "250", str(s / "evaluate-i0"), "--policy", "imagined", "250", str(s / "evaluate-i1"),
-                   "--json", str(tmp_path / "budget.json"), "--plot", str(tmp_path / "budget.png")])
+                   "--json", str(tmp_path / "budget.json"), "--plot", str(tmp_path / "budget.png"),
+                   "--tasks-plot", str(tmp_path / "tasks.png")])
     assert [r["real_episodes"] for r in result["policies"]] == [320, 1280, 250, 250]
     assert np.allclose([r["gain"] for r in result["policies"]], [0.03, 0.15, 0.01, 0.04])
     assert json.loads((tmp_path / "budget.json").read_text())["policies"][1]["p_value"] == result["policies"][1]["p_value"]
-    assert (tmp_path / "budget.png").stat().st_size > 0
+    assert (tmp_path / "budget.png").stat().st_size > 0 and (tmp_path / "tasks.png").stat().st_size > 0
+    assert result["policies"][1]["per_task"][0] > result["start_per_task"][0]  # the 15 solved are task 0's failures
     out = capsys.readouterr().out
     assert "| real | 1280 | 65.0 % | +15.0 [" in out and "the start solves 50.0 %" in out
     with pytest.raises(ConfigError, match="whole number"):
