@@ -231,15 +231,17 @@ class LiberoEnv:
     # close, or later at garbage collection) in whichever context is current. With several envs in one
     # process (a worker's cached envs), an env would render its poses with another model's meshes and
     # textures, and freeing one would delete another's GL objects of the same ids, silently.
-    def _gl_current(self) -> None:
-        self.sim._render_context_offscreen.gl_ctx.make_current()
-
-    def _free_gl(self) -> None:
-        """Free this env's GL objects in its own context (LIBERO builds one even with render=False);
-        robosuite's own free, later, is then a no-op."""
+    def _gl_current(self):
+        """Make this env's GL context current (LIBERO builds one even with render=False); -> its render context."""
         ctx = getattr(self.sim, "_render_context_offscreen", None)
         if ctx is not None:
             ctx.gl_ctx.make_current()
+        return ctx
+
+    def _free_gl(self) -> None:
+        """Free this env's GL objects in its own context; robosuite's own free, later, is then a no-op."""
+        ctx = self._gl_current()
+        if ctx is not None:
             ctx.con.free()
 
     def close(self) -> None:

@@ -44,13 +44,13 @@ def test_the_recipes_are_a_config_group_with_the_papers_as_default():
     assert set(paper) == set(tuned)  # one schema: a recipe sets values, it adds no setting of its own
 
 
-
 def test_the_every_task_recipe_gives_each_member_8_placements_of_every_task():
     rl = compose_config("post_train_loop", ["+task=libero_spatial", "env=real", "rl=es_every_task"]).rl
     assert rl.policy_update == "es" and rl.contexts == "placements" and rl.task_focus is None
     picks = draw_contexts(torch.Generator().manual_seed(0), None, rl.contexts_per_iteration,
                           focus_positions(0, rl.task_focus, 10))
     assert sorted(collections.Counter(k % 10 for k in picks).values()) == [8] * 10  # placement k is task k % 10
+
 
 def test_the_guard_undoes_an_update_whose_hack_rate_is_above_its_bound():
     """An update the guard measures above `rl.guard_max_hack_rate` is undone: weights and Adam's state
