@@ -16,9 +16,10 @@ import torch
 
 from stages.post_train_loop.training import draw_contexts, focus_positions, placements
 from worldenv_core.errors import ConfigError
+from worldenv_core.files import write_text_atomic
 from worldenv_core.models.checkpoint import read_config, save_model
 from worldenv_core.rl import es
-from worldenv_core.rl.real_rollouts import collect_member_outcomes
+from worldenv_core.rl.real_rollouts import collect_member_outcomes, journal_outcomes, restore_outcomes
 from worldenv_core.training import Phase, per_step, step_seed
 from worldenv_core.training.checkpoints import Checkpoints
 
@@ -102,6 +103,7 @@ def es_phase(policy, collect, n_contexts: int | None, rl, seed: int, ledger: Pat
 
 
 LEDGER_MUST_MATCH = ("es_pairs", "contexts_per_iteration", *es.LEDGER_SETTINGS)
+IN_PROGRESS = "in_progress.json"  # the finished rollouts of the iteration a sitting ended inside
 
 
 def seed_from_ledger(work: Path, ledger_from: str | Path, policy, optimizers: dict, model_config: dict, meta: dict,
@@ -110,8 +112,9 @@ def seed_from_ledger(work: Path, ledger_from: str | Path, policy, optimizers: di
     ledger (`iter_NNNN.json`, `es.replay_ledger`) is checkpointed at its last iteration, with the run's history
     as far as the folder's `history.json` holds it, so the same command continues the run from there (a
     campaign's ledger kept in the repository outlives a machine's `outputs/`). The ledger's settings must be
-    this run's; a folder that does not exist yet (the campaign's first sitting) seeds nothing. -> the iteration
-    it starts from (0: nothing seeded)."""
+    this run's; a folder that does not exist yet (the campaign's first sitting) seeds nothing. The finished rollouts
+    of the iteration that was under way (`in_progress.json`) go back into the journal, where only the same jobs
+    under the same behaviour weights take them. -> the iteration it starts from (0: nothing seeded)."""
     checkpoints = Checkpoints(work)
     if checkpoints.last is not None:
         return 0
@@ -123,7 +126,7 @@ def seed_from_ledger(work: Path, ledger_from: str | Path, policy, optimizers: di
         entries = es.read_ledger(folder)
     except (OSError, ValueError, KeyError) as e:
         raise ConfigError(f"rl.es_ledger_from={ledger_from}: {e}") from None
-    if not entries:
+    if not entries and not (folder / IN_PROGRESS).exists():
         raise ConfigError(f"rl.es_ledger_from={ledger_from} holds no iter_NNNN.json")
     for e in entries:
         shape = (len(e["success"]), len(e["success"][0]) if e["success"] else 0)
@@ -134,24 +137,35 @@ def seed_from_ledger(work: Path, ledger_from: str | Path, policy, optimizers: di
             raise ConfigError(f"rl.es_ledger_from={ledger_from}: iteration {e['iteration']} was made with "
                               + ", ".join(f"rl.{k}={settings[k]}" for k in wrong) + ", not this run's")
     done = min(len(entries), int(rl.iterations))
-    es.replay_ledger(policy, entries, done)
-    for e in entries[:done]:
-        es.write_ledger_entry(work / "es_ledger", e["iteration"], e["contexts"], e["seeds"], torch.tensor(e["success"]),
-                              torch.tensor(e["steps"]), torch.tensor(e["returns"]), rl, e.get("rolled_back", False),
-                              e.get("no_step", False))
-    history = json.loads((folder / "history.json").read_text()) if (folder / "history.json").exists() else []
-    history = [h for h in history if h.get("step", 0) <= done]
-    evaluated = sorted({int(h["step"]) for h in history if "validation_success" in h or "real_success" in h})
-    checkpoints.save(done, policy, model_config, meta, optimizers, history, trainer={"evaluated": evaluated})
-    log.info("seeded %s from the ledger %s: %d iterations replayed on the starting policy", work, folder, done)
+    if done:
+        es.replay_ledger(policy, entries, done)
+        for e in entries[:done]:
+            es.write_ledger_entry(work / "es_ledger", e["iteration"], e["contexts"], e["seeds"],
+                                  torch.tensor(e["success"]), torch.tensor(e["steps"]), torch.tensor(e["returns"]), rl,
+                                  e.get("rolled_back", False), e.get("no_step", False))
+        history = json.loads((folder / "history.json").read_text()) if (folder / "history.json").exists() else []
+        history = [h for h in history if h.get("step", 0) <= done]
+        evaluated = sorted({int(h["step"]) for h in history if "validation_success" in h or "real_success" in h})
+        checkpoints.save(done, policy, model_config, meta, optimizers, history, trainer={"evaluated": evaluated})
+        log.info("seeded %s from the ledger %s: %d iterations replayed on the starting policy", work, folder, done)
+    if done == len(entries) and (folder / IN_PROGRESS).exists():  # the next iteration's finished rollouts
+        n = restore_outcomes(work / "rollout_journal", json.loads((folder / IN_PROGRESS).read_text()))
+        log.info("%d finished rollouts of iteration %d taken back from %s", n, done + 1, folder / IN_PROGRESS)
     return done
 
 
 def export_ledger(work: Path, to: Path) -> Path:
-    """A run's ledger and history (its last checkpoint's) copied to `to`, what `seed_from_ledger` reads."""
+    """A run's ledger and history (its last checkpoint's) copied to `to`, what `seed_from_ledger` reads, with the
+    outcomes of the iteration under way (`in_progress.json`): an iteration of the whole suite is 1,280 episodes,
+    more than an hour of these cores, and a session's end would otherwise lose what it had finished."""
     to.mkdir(parents=True, exist_ok=True)
     for f in sorted((work / "es_ledger").glob("iter_*.json")):
         shutil.copy2(f, to / f.name)
+    records = journal_outcomes(work / "rollout_journal")
+    if records:
+        write_text_atomic(to / IN_PROGRESS, json.dumps(records, separators=(",", ":")))
+    else:
+        (to / IN_PROGRESS).unlink(missing_ok=True)  # the iteration it held is in the ledger now
     last = Checkpoints(work).last
     if last is not None:
         history = torch.load(last / "training_state.pt", weights_only=False)["history"]

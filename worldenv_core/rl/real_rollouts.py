@@ -24,7 +24,7 @@ import pickle
 import shutil
 import time
 import zlib
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -170,6 +170,45 @@ class RolloutJournal:
 
     def add(self, job: RealRolloutJob, result: dict) -> None:
         write_bytes_atomic(self._path(job), zlib.compress(pickle.dumps((self._job_key(job), result)), 1))
+
+
+def _tuples(x):
+    """JSON's lists back to the tuples a job key is made of."""
+    return tuple(_tuples(v) for v in x) if isinstance(x, list) else x
+
+
+OUTCOME_FIELDS = ("index", "seed", "first_success", "error", "steps")
+
+
+def journal_outcomes(journal: str | Path) -> list[dict]:
+    """The outcomes in a journal's folders (the iteration under way) as JSON-able records, for rollouts that kept
+    no frames (ES members: only their outcome is read): what another machine needs to take them back
+    (`restore_outcomes`), a few hundred bytes each where a rollout costs seconds of physics."""
+    out = []
+    for f in sorted(Path(journal).glob("*/*.rollout")):
+        try:
+            key, r = pickle.loads(zlib.decompress(f.read_bytes()))
+        except (OSError, zlib.error, pickle.UnpicklingError, EOFError, ValueError):
+            continue  # torn: run again
+        if r["frames"] or r["actions"]:
+            continue
+        out.append({"behaviour": f.parent.name, "key": list(key), "start": asdict(r["start"]),
+                    "seconds": {k: round(v, 3) for k, v in r["seconds"].items()},
+                    **{k: r[k] for k in OUTCOME_FIELDS}})
+    return out
+
+
+def restore_outcomes(journal: str | Path, records: list[dict]) -> int:
+    """`journal_outcomes`' records written back as journal files. Each is taken back only by the job of the same
+    key under the same behaviour weights (`RolloutJournal.get`), so a record that no longer fits is run again.
+    -> how many were written."""
+    for rec in records:
+        result = {**{k: rec[k] for k in OUTCOME_FIELDS}, "start": RealStart(**rec["start"]), "frames": [],
+                  "proprio": [], "actions": [], "executed": [], "seconds": rec["seconds"]}
+        path = Path(journal) / rec["behaviour"] / f"{int(rec['index']):05d}.rollout"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_bytes_atomic(path, zlib.compress(pickle.dumps((_tuples(rec["key"]), result)), 1))
+    return len(records)
 
 
 def retire(journal: Path, keep: str | Path | None) -> None:

@@ -2,6 +2,7 @@
 LOOP iterations in imagination, real-simulator evaluation, resume, and bad settings."""
 import json
 import pickle
+import shutil
 import zlib
 from pathlib import Path
 
@@ -17,6 +18,7 @@ from worldenv_core.data.mcap_io import read_episode, read_reflector_scores
 from worldenv_core.manifest import Manifest
 from worldenv_core.models.checkpoint import load_checkpoint
 from worldenv_core.rl import es
+from worldenv_core.rl.real_rollouts import journal_outcomes
 from worldenv_core.stage import ConfigError
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
@@ -461,7 +463,10 @@ def test_evolution_strategies_in_weight_space_on_real_and_imagined_rollouts(trai
     assert bool(moved) == (step["es_return_std"] > 0)  # no step where every member returned the same
     # a campaign on a machine whose outputs/ is empty: its ledger (kept in the repository) seeds the run, which
     # goes on from the policy the ledger's steps make
+    (Path(exp) / "kept_ledger").mkdir()
+    (Path(exp) / "kept_ledger" / "in_progress.json").write_text("[]")  # an older sitting's unfinished iteration
     kept_ledger = export_ledger(work, Path(exp) / "kept_ledger")
+    assert not (kept_ledger / "in_progress.json").exists()  # the run finished its iteration: nothing under way
     seeded = post_train_loop(cfg("post_train_loop", exp, *es_args, "rl.iterations=2", f"rl.es_ledger_from={kept_ledger}"))
     assert seeded["train_real_episodes"] == 16
     rec2 = Manifest(exp).latest("post_train_loop", task="tiny", env="real")
@@ -471,6 +476,25 @@ def test_evolution_strategies_in_weight_space_on_real_and_imagined_rollouts(trai
     again = es.replay_ledger(load_checkpoint(meta["post_trained_from"], "policy")[0], ledger2)
     final2, _ = load_checkpoint(str(work2 / "policy"), "policy")
     assert all(p.equal(q) for p, q in zip(again.parameters(), final2.parameters()))
+    # a session that ended inside iteration 2: its finished rollouts travel with the ledger (here all 8, each
+    # marked by its physics time) and a machine without its outputs/ takes them back instead of running them
+    (iter2,) = [p for p in (work2 / "kept_rollouts").iterdir() if not p.name.endswith("_behaviour")]
+    records = [{**r, "seconds": {**r["seconds"], "physics": 100.0}} for r in journal_outcomes(iter2.parent)]
+    (kept_ledger / "in_progress.json").write_text(json.dumps(records))
+    shutil.rmtree(work2)  # the machine is gone
+    resumed = post_train_loop(cfg("post_train_loop", exp, *es_args, "rl.iterations=2", f"rl.es_ledger_from={kept_ledger}"))
+    step2 = [h for h in json.loads((work2 / "training.json").read_text()) if "es_pairs" in h][-1]
+    assert len(records) == 8 and step2["rollout_physics_seconds"] == 800.0 and resumed["iterations"] == 2
+    assert es.read_ledger(work2 / "es_ledger") == ledger2  # the same outcomes, the same step
+    # ... and inside its first iteration, before any ledger entry: the rollouts alone seed the run
+    first = Path(exp) / "first_sitting"
+    first.mkdir()
+    records = [{**r, "seconds": {**r["seconds"], "physics": 100.0}} for r in journal_outcomes(work / "kept_rollouts")]
+    (first / "in_progress.json").write_text(json.dumps(records))
+    shutil.rmtree(work)
+    post_train_loop(cfg("post_train_loop", exp, *es_args, f"rl.es_ledger_from={first}"))
+    step1 = next(h for h in json.loads((work / "training.json").read_text()) if "es_pairs" in h)
+    assert len(records) == 8 and step1["rollout_physics_seconds"] == 800.0 and es.read_ledger(work / "es_ledger") == [entry]
     with pytest.raises(ConfigError, match="was made with rl.es_sigma=0.05"):
         post_train_loop(cfg("post_train_loop", exp, *es_args, "rl.iterations=3", "rl.es_sigma=0.1",
                             f"rl.es_ledger_from={kept_ledger}"))

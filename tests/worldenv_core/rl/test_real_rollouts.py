@@ -146,3 +146,36 @@ def test_a_journal_tells_a_chunk_held_draw_from_a_per_step_one_and_keeps_the_old
     assert RolloutJournal._job_key(job) == (3, 7, start.key, 16, 1.6)
     held = RolloutJournal._job_key(dataclasses.replace(job, exploration="chunk"))
     assert held != RolloutJournal._job_key(job) and held[-1] == "chunk"
+
+
+def test_an_es_journals_outcomes_travel_as_json_and_are_taken_back_by_the_same_jobs_only(tmp_path):
+    """`journal_outcomes` -> JSON -> `restore_outcomes` on another machine's empty journal: the same job under the
+    same behaviour weights gets its outcome back; a rollout that kept frames (PPO's) is not exported, and a job
+    of another member or start is run afresh."""
+    import dataclasses
+    import json
+
+    from worldenv_core.rl.real_rollouts import RealRolloutJob, RolloutJournal, journal_outcomes, restore_outcomes
+
+    saved = save_model(tmp_path / "behaviour", tiny_policy(), POLICY_CONFIG, {"kind": "policy"})
+    lang = np.zeros(16, dtype=np.float32)
+    member = RealRolloutJob(None, RealStart(task_id=3, seed=2**40 + 7), str(saved), 0, lang, 224, 0.0, index=5,
+                            perturbation=(3969543146641149120, -0.05), keep_frames=False)
+    ppo = RealRolloutJob(None, RealStart(task_id=1, seed=9), str(saved), 4, lang, 224, 1.0, index=6)
+    book = RolloutJournal(tmp_path / "journal", saved)
+    outcome = {"index": 5, "start": member.start, "seed": 0, "frames": [], "proprio": [], "actions": [],
+               "executed": [8] * 21, "first_success": 168, "error": None, "seconds": {"physics": 1.23456}, "steps": 168}
+    book.add(member, outcome)
+    book.add(ppo, {**outcome, "index": 6, "frames": [np.zeros((2, 2, 3), np.uint8)], "actions": [np.zeros((4, 7))]})
+    records = json.loads(json.dumps(journal_outcomes(tmp_path / "journal")))
+    assert [r["index"] for r in records] == [5]  # only the outcome-only rollout
+    assert restore_outcomes(tmp_path / "elsewhere", records) == 1
+    back = RolloutJournal(tmp_path / "elsewhere", saved).get(member)
+    assert back["first_success"] == 168 and back["steps"] == 168 and back["error"] is None
+    assert back["start"] == member.start and back["seconds"] == {"physics": 1.235}
+    assert RolloutJournal(tmp_path / "elsewhere", saved).get(dataclasses.replace(member, perturbation=(1, -0.05))) is None
+    moved = tiny_policy()
+    with torch.no_grad():
+        next(moved.parameters()).add_(1.0)
+    other = save_model(tmp_path / "other", moved, POLICY_CONFIG, {"kind": "policy"})
+    assert RolloutJournal(tmp_path / "elsewhere", other).get(member) is None  # another behaviour: its folder retired
