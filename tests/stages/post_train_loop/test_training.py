@@ -52,6 +52,16 @@ def test_the_every_task_recipe_gives_each_member_8_placements_of_every_task():
     assert sorted(collections.Counter(k % 10 for k in picks).values()) == [8] * 10  # placement k is task k % 10
 
 
+def test_the_many_pairs_recipe_spends_es_by_tasks_episodes_on_four_times_the_directions():
+    by_task, many = (compose_config("post_train_loop", ["+task=libero_spatial", "env=real", f"rl={r}"]).rl
+                     for r in ("es_by_task", "es_many_pairs"))
+    assert many.es_pairs == 4 * by_task.es_pairs and many.task_focus == by_task.task_focus == 1
+    assert 2 * many.es_pairs * many.contexts_per_iteration == 2 * by_task.es_pairs * by_task.contexts_per_iteration == 256
+    picks = draw_contexts(torch.Generator().manual_seed(0), None, many.contexts_per_iteration,
+                          focus_positions(3, many.task_focus, 10))
+    assert {k % 10 for k in picks} == {3} and len(set(picks)) == 4  # 4 distinct placements of iteration 3's task
+
+
 def test_the_guard_undoes_an_update_whose_hack_rate_is_above_its_bound():
     """An update the guard measures above `rl.guard_max_hack_rate` is undone: weights and Adam's state
     as before it; at or below the bound, or with no imagined success to judge (NaN), it stays."""
