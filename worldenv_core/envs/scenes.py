@@ -7,8 +7,9 @@ every context of its iteration: 16 resets per start), so a worker keeps what a h
 with a soft reset, bit for bit: the MuJoCo state, the fixtures' placement (model.body_pos / body_quat, sampled at
 reset), and the Python-side state a hard reset rebuilds but a soft one keeps: the arm controller's arrays (its
 mass matrix is read before the reset's last forward pass), the gripper's smoothed command, and the observables'
-sampling clocks (robosuite 1.4). `tests/worldenv_core/envs/test_scenes.py` holds a restored scene's physics,
-proprioception and renders equal to a fresh hard reset's over an episode prefix.
+sampling clocks (robosuite 1.4). `tests/worldenv_core/envs/test_scenes.py` holds a restored scene's renders and
+success equal to a fresh hard reset's over an episode prefix, and its physics and proprioception equal to float64's
+last bits (on some CPUs one velocity differs by ~1e-18 after the first step, with every input found equal).
 """
 
 from __future__ import annotations

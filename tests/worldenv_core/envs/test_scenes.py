@@ -1,4 +1,5 @@
-"""A kept scene put back without rebuilding the simulator is the hard reset's, bit for bit (real LIBERO)."""
+"""A kept scene put back without rebuilding the simulator is the hard reset's (real LIBERO): the same renders and
+success, and the physics to float64's last bits (see `test_a_kept_scene_comes_back_as_the_hard_reset_made_it`)."""
 import numpy as np
 
 from worldenv_core.envs.libero_env import LiberoEnv
@@ -31,6 +32,11 @@ def test_a_kept_scene_comes_back_as_the_hard_reset_made_it():
     assert len(env._scenes) == 2
     env.reset(init_state=3, seed=start["seed"])  # a benchmark init state: a hard reset, never kept
     assert len(env._scenes) == 2
-    for name, a, b in zip(("state", "proprio", "success", "render"), expected, got):
+    # Before the first step every float of MjData, the model, the controller and the robot is equal; on some CPUs
+    # (an AMD EPYC, not CI's) the first step's arm torques still come out ~1e-15 apart (one velocity 3e-18 apart
+    # after it), as if a fresh and a reused buffer took different SIMD paths. A hard reset of a reused env does not.
+    for name, a, b in zip(("state", "proprio"), expected, got):
+        np.testing.assert_allclose(b, a, rtol=0, atol=1e-12, err_msg=f"{name} differs after a restored reset")
+    for name, a, b in zip(("success", "render"), expected[2:], got[2:]):
         assert np.array_equal(a, b), f"{name} differs after a restored reset"
     env.close()
