@@ -158,18 +158,31 @@ class RolloutJournal:
         return key if job.perturbation is None else (*key, job.perturbation, job.es_parameters)
 
     def _path(self, job: RealRolloutJob) -> Path:
-        return self.folder / f"{job.index:05d}.rollout"
+        return self.folder / _rollout_name(job.index)
 
     def get(self, job: RealRolloutJob) -> dict | None:
         """The job's rollout, if this journal holds it (and it is whole)."""
-        try:
-            key, result = pickle.loads(zlib.decompress(self._path(job).read_bytes()))
-        except (OSError, zlib.error, pickle.UnpicklingError, EOFError, ValueError):
-            return None
-        return result if key == self._job_key(job) else None
+        found = _read_rollout(self._path(job))
+        return found[1] if found is not None and found[0] == self._job_key(job) else None
 
     def add(self, job: RealRolloutJob, result: dict) -> None:
-        write_bytes_atomic(self._path(job), zlib.compress(pickle.dumps((self._job_key(job), result)), 1))
+        _write_rollout(self._path(job), self._job_key(job), result)
+
+
+def _rollout_name(index: int) -> str:
+    return f"{int(index):05d}.rollout"
+
+
+def _read_rollout(path: Path) -> tuple | None:
+    """A journal file's (job key, result), or None where it is missing or torn (the rollout is run again)."""
+    try:
+        return pickle.loads(zlib.decompress(Path(path).read_bytes()))
+    except (OSError, zlib.error, pickle.UnpicklingError, EOFError, ValueError):
+        return None
+
+
+def _write_rollout(path: Path, key: tuple, result: dict) -> None:
+    write_bytes_atomic(path, zlib.compress(pickle.dumps((key, result)), 1))
 
 
 def _tuples(x):
@@ -186,12 +199,10 @@ def journal_outcomes(journal: str | Path) -> list[dict]:
     (`restore_outcomes`), a few hundred bytes each where a rollout costs seconds of physics."""
     out = []
     for f in sorted(Path(journal).glob("*/*.rollout")):
-        try:
-            key, r = pickle.loads(zlib.decompress(f.read_bytes()))
-        except (OSError, zlib.error, pickle.UnpicklingError, EOFError, ValueError):
-            continue  # torn: run again
-        if r["frames"] or r["actions"]:
+        found = _read_rollout(f)
+        if found is None or found[1]["frames"] or found[1]["actions"]:  # torn (run again), or not an outcome only
             continue
+        key, r = found
         out.append({"behaviour": f.parent.name, "key": list(key), "start": asdict(r["start"]),
                     "seconds": {k: round(v, 3) for k, v in r["seconds"].items()},
                     **{k: r[k] for k in OUTCOME_FIELDS}})
@@ -205,9 +216,9 @@ def restore_outcomes(journal: str | Path, records: list[dict]) -> int:
     for rec in records:
         result = {**{k: rec[k] for k in OUTCOME_FIELDS}, "start": RealStart(**rec["start"]), "frames": [],
                   "proprio": [], "actions": [], "executed": [], "seconds": rec["seconds"]}
-        path = Path(journal) / rec["behaviour"] / f"{int(rec['index']):05d}.rollout"
+        path = Path(journal) / rec["behaviour"] / _rollout_name(rec["index"])
         path.parent.mkdir(parents=True, exist_ok=True)
-        write_bytes_atomic(path, zlib.compress(pickle.dumps((_tuples(rec["key"]), result)), 1))
+        _write_rollout(path, _tuples(rec["key"]), result)
     return len(records)
 
 
