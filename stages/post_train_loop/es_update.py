@@ -161,7 +161,10 @@ def export_ledger(work: Path, to: Path) -> Path:
     to.mkdir(parents=True, exist_ok=True)
     for f in sorted((work / "es_ledger").glob("iter_*.json")):
         shutil.copy2(f, to / f.name)
-    records = journal_outcomes(work / "rollout_journal")
+    # a sitting stopped between an iteration's step and the next one's start still holds the finished iteration's
+    # journal: its members' seeds are in the ledger now, so its rollouts are not the iteration under way
+    finished = {int(s) for e in es.read_ledger(to) for s in e["seeds"]}
+    records = [r for r in journal_outcomes(work / "rollout_journal") if int(r["key"][-2][0]) not in finished]
     if records:
         write_text_atomic(to / IN_PROGRESS, json.dumps(records, separators=(",", ":")))
     else:

@@ -465,8 +465,11 @@ def test_evolution_strategies_in_weight_space_on_real_and_imagined_rollouts(trai
     # goes on from the policy the ledger's steps make
     (Path(exp) / "kept_ledger").mkdir()
     (Path(exp) / "kept_ledger" / "in_progress.json").write_text("[]")  # an older sitting's unfinished iteration
+    (finished,) = [p for p in (work / "kept_rollouts").iterdir() if not p.name.endswith("_behaviour")]
+    shutil.copytree(finished, work / "rollout_journal" / finished.name)  # as between its step and the next iteration
     kept_ledger = export_ledger(work, Path(exp) / "kept_ledger")
     assert not (kept_ledger / "in_progress.json").exists()  # the run finished its iteration: nothing under way
+    shutil.rmtree(work / "rollout_journal" / finished.name)
     seeded = post_train_loop(cfg("post_train_loop", exp, *es_args, "rl.iterations=2", f"rl.es_ledger_from={kept_ledger}"))
     assert seeded["train_real_episodes"] == 16
     rec2 = Manifest(exp).latest("post_train_loop", task="tiny", env="real")
