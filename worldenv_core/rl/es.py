@@ -176,20 +176,28 @@ def replay_ledger(policy: torch.nn.Module, entries: list[dict], upto: int | None
     return policy
 
 
-def half_agreement(entries: list[dict], discount: float = 1.0) -> dict:
+def half_agreement(entries: list[dict], discount: float = 1.0, judged_by: float | None = None) -> dict:
     """Does a direction's measured effect repeat on other starts? Each ledger entry's pair differences
     R(+k) - R(-k) on its even-numbered contexts against those on its odd ones: their cosine per iteration
     and pooled over the entries (about 0 where the pairs' differences are the starts' noise, toward 1 where
-    the weight-space directions carry a signal), the counterpart of PPO's even/odd gradient cosine."""
-    per, dots, sq_even, sq_odd = [], 0.0, 0.0, 0.0
+    the weight-space directions carry a signal), the counterpart of PPO's even/odd gradient cosine.
+    `judged_by`: the other half's returns under this discount instead (both ways round): whether differences
+    measured with a shaped return (`discount` < 1, a faster success worth more) point where the benchmark's
+    success (`judged_by=1`) does on starts they were not measured on."""
+    ways = [(0, 1)] if judged_by is None else [(0, 1), (1, 0)]
+    judge = discount if judged_by is None else judged_by
+    per, dots, sq_a, sq_b = [], 0.0, 0.0, 0.0
     for e in entries:
         success, steps = torch.tensor(e["success"]), torch.tensor(e["steps"])
-        halves = [member_returns(success[h::2], steps[h::2], discount).view(-1, 2) for h in (0, 1)]
-        d_even, d_odd = (r[:, 0] - r[:, 1] for r in halves)
-        dot, a, b = float(d_even @ d_odd), float(d_even @ d_even), float(d_odd @ d_odd)
+        dot = a = b = 0.0
+        for h, other in ways:
+            r_a = member_returns(success[h::2], steps[h::2], discount).view(-1, 2)
+            r_b = member_returns(success[other::2], steps[other::2], judge).view(-1, 2)
+            d_a, d_b = r_a[:, 0] - r_a[:, 1], r_b[:, 0] - r_b[:, 1]
+            dot, a, b = dot + float(d_a @ d_b), a + float(d_a @ d_a), b + float(d_b @ d_b)
         per.append(dot / (a * b) ** 0.5 if a * b > 0 else float("nan"))
-        dots, sq_even, sq_odd = dots + dot, sq_even + a, sq_odd + b
-    pooled = dots / (sq_even * sq_odd) ** 0.5 if sq_even * sq_odd > 0 else float("nan")
+        dots, sq_a, sq_b = dots + dot, sq_a + a, sq_b + b
+    pooled = dots / (sq_a * sq_b) ** 0.5 if sq_a * sq_b > 0 else float("nan")
     return {"per_iteration": per, "pooled": pooled, "iterations": len(entries)}
 
 

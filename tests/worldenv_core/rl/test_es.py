@@ -139,3 +139,28 @@ def test_half_agreement_is_high_where_directions_matter_and_near_zero_where_they
         return out
     signal, noise = es.half_agreement(ledger(0.25)), es.half_agreement(ledger(0.0))
     assert signal["pooled"] > 0.6 and abs(noise["pooled"]) < 0.2 and len(signal["per_iteration"]) == 40
+
+
+def test_a_shaped_return_judged_by_success_finds_the_direction_speed_carries():
+    """Simulated ledgers where each direction changes success a little and speed a lot: differences measured with
+    a discount point where the odd starts' successes do more clearly than successes judged by successes; where the
+    faster member fails more often, the discounted differences point against success."""
+    g = torch.Generator().manual_seed(1)
+
+    def ledger(speed_sign: float) -> list[dict]:
+        out = []
+        for _ in range(40):
+            effect = torch.randn(4, generator=g)
+            p = 0.5 + 0.06 * effect  # pair k's members: p_k and 1 - p_k, barely apart
+            probs = torch.stack([p, 1 - p], 1).flatten()
+            success = torch.rand(16, 8, generator=g) < probs[None]
+            pace = torch.stack([effect, -effect], 1).flatten() * speed_sign  # the + member faster where it helps
+            steps = (150 - 40 * pace[None] + 10 * torch.randn(16, 8, generator=g)).clamp(20, 300).round()
+            out.append({"success": success.int().tolist(), "steps": steps.int().tolist()})
+        return out
+    aligned, opposed = ledger(1.0), ledger(-1.0)
+    plain = es.half_agreement(aligned)["pooled"]
+    shaped = es.half_agreement(aligned, 0.98, judged_by=1.0)
+    assert shaped["pooled"] > plain + 0.1 and len(shaped["per_iteration"]) == 40
+    assert es.half_agreement(opposed, 0.98, judged_by=1.0)["pooled"] < 0
+    assert es.half_agreement(aligned, 1.0, judged_by=1.0)["pooled"] == pytest.approx(plain, abs=0.02)  # both ways round
