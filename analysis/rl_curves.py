@@ -81,9 +81,16 @@ def summarise(history: list[dict], rollouts_per_iteration: int, ledger: list[dic
     if ledger:
         from worldenv_core.rl.es import half_agreement
 
-        agree = half_agreement(ledger, ledger[0].get("es_discount") or 1.0)
+        # a context's task is its placement number mod the task count (the validated tasks: the run's); each task's
+        # starts split between the halves, as the even/odd positions of a multi-task iteration would split its tasks
+        n_tasks = max(1, len(per_task))
+        agree = half_agreement(ledger, ledger[0].get("es_discount") or 1.0, n_tasks=n_tasks)
         series["direction_cosine"] = [(e["iteration"], c) for e, c in zip(ledger, agree["per_iteration"])]
         series["es_half_cosine_pooled"] = agree["pooled"]
+        if n_tasks > 1:  # does a direction that helps some tasks help the others?
+            across = half_agreement(ledger, ledger[0].get("es_discount") or 1.0, n_tasks=n_tasks, across_tasks=True)
+            if across["pooled"] == across["pooled"]:  # NaN where each iteration held one task (rl.task_focus=1)
+                series["es_half_cosine_across_tasks"] = across["pooled"]
     return {"iterations": len(steps), "real_rl_episodes": episodes, "validation": val, "validation_episodes": val_n,
             "validation_tasks": per_task, **series,
             "gradient_signal": {"iterations": len(sig), "signal_sq": pooled[0] if pooled else None,
@@ -118,7 +125,7 @@ def plot(runs: dict[str, dict], path: str | Path, title: str = "") -> Path:
     panels = [("validation success (fixed fresh placements)", "validation", "real RL episodes consumed"),
               ("training rollouts' success (diagnostic)", "mean_reward", "iteration"),
               ("exact KL per update (PPO)", "exact_kl", "iteration"),
-              ("direction cosine (PPO: even vs odd groups; ES: even vs odd starts)", "direction_cosine", "iteration"),
+              ("direction cosine (PPO: even vs odd groups; ES: two halves of each task's starts)", "direction_cosine", "iteration"),
               ("weight-space members: mean |R+ - R-| per pair (ES)", "es_pair_diff_abs", "iteration"),
               ("RMS change of the mean action (PPO)", "action_shift_rms", "iteration")]
     if not ppo:  # ES runs only: the PPO panels would be empty, so per-task validation and the step's size instead

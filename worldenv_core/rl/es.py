@@ -176,23 +176,50 @@ def replay_ledger(policy: torch.nn.Module, entries: list[dict], upto: int | None
     return policy
 
 
-def half_agreement(entries: list[dict], discount: float = 1.0, judged_by: float | None = None) -> dict:
+def halves(contexts: list[int], n_tasks: int, across_tasks: bool = False) -> torch.Tensor:
+    """Each context's half (0 or 1) for `half_agreement`. Contexts numbered as fresh placements are of task
+    number mod `n_tasks` (`stages.post_train_loop.training.placements`), and consecutive numbers cycle through
+    the tasks, so even and odd positions would be two different sets of tasks. Within tasks (the default): each
+    task's contexts alternate between the halves, so both hold every task. `across_tasks`: the tasks at even
+    positions against those at odd ones."""
+    if across_tasks:
+        return torch.tensor([(int(c) % n_tasks) % 2 for c in contexts])
+    seen: dict[int, int] = {}
+    out = []
+    for c in contexts:
+        t = int(c) % n_tasks
+        out.append(seen.get(t, 0) % 2)
+        seen[t] = seen.get(t, 0) + 1
+    return torch.tensor(out)
+
+
+def half_agreement(entries: list[dict], discount: float = 1.0, judged_by: float | None = None, n_tasks: int = 1,
+                   across_tasks: bool = False) -> dict:
     """Does a direction's measured effect repeat on other starts? Each ledger entry's pair differences
-    R(+k) - R(-k) on its even-numbered contexts against those on its odd ones: their cosine per iteration
-    and pooled over the entries (about 0 where the pairs' differences are the starts' noise, toward 1 where
-    the weight-space directions carry a signal), the counterpart of PPO's even/odd gradient cosine.
+    R(+k) - R(-k) on one half of its contexts against those on the other (`halves`: each task's starts split
+    between them; `n_tasks`, the suite's task count, says which task a context number is): their cosine per
+    iteration and pooled over the entries (about 0 where the pairs' differences are the starts' noise, toward 1
+    where the weight-space directions carry a signal), the counterpart of PPO's even/odd gradient cosine.
+    `across_tasks`: one half of the tasks against the other instead: whether a direction that helps some tasks
+    helps the others (about 0 or below where a step chosen on some tasks is a random move for the rest).
     `judged_by`: the other half's returns under this discount instead (both ways round): whether differences
     measured with a shaped return (`discount` < 1, a faster success worth more) point where the benchmark's
     success (`judged_by=1`) does on starts they were not measured on."""
+    if across_tasks and n_tasks < 2:
+        raise ValueError("an agreement across tasks needs n_tasks >= 2")
     ways = [(0, 1)] if judged_by is None else [(0, 1), (1, 0)]
     judge = discount if judged_by is None else judged_by
     per, dots, sq_a, sq_b = [], 0.0, 0.0, 0.0
     for e in entries:
         success, steps = torch.tensor(e["success"]), torch.tensor(e["steps"])
+        half = halves(e.get("contexts", range(len(success))), n_tasks, across_tasks)
+        if half.min() == half.max():  # one context, or one task where halves of tasks were asked for
+            per.append(float("nan"))
+            continue
         dot = a = b = 0.0
         for h, other in ways:
-            r_a = member_returns(success[h::2], steps[h::2], discount).view(-1, 2)
-            r_b = member_returns(success[other::2], steps[other::2], judge).view(-1, 2)
+            r_a = member_returns(success[half == h], steps[half == h], discount).view(-1, 2)
+            r_b = member_returns(success[half == other], steps[half == other], judge).view(-1, 2)
             d_a, d_b = r_a[:, 0] - r_a[:, 1], r_b[:, 0] - r_b[:, 1]
             dot, a, b = dot + float(d_a @ d_b), a + float(d_a @ d_a), b + float(d_b @ d_b)
         per.append(dot / (a * b) ** 0.5 if a * b > 0 else float("nan"))

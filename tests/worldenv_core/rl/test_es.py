@@ -164,3 +164,11 @@ def test_a_shaped_return_judged_by_success_finds_the_direction_speed_carries():
     assert shaped["pooled"] > plain + 0.1 and len(shaped["per_iteration"]) == 40
     assert es.half_agreement(opposed, 0.98, judged_by=1.0)["pooled"] < 0
     assert es.half_agreement(aligned, 1.0, judged_by=1.0)["pooled"] == pytest.approx(plain, abs=0.02)  # both ways round
+
+
+def test_halves_split_every_task_between_them():
+    assert es.halves([10, 11, 12, 13, 14, 15], 2).tolist() == [0, 0, 1, 1, 0, 0]
+    assert es.halves([10, 11, 12, 13], 2, across_tasks=True).tolist() == [0, 1, 0, 1]
+    assert es.halves([7, 8, 9], 1).tolist() == [0, 1, 0]  # one task: even and odd positions
+    with pytest.raises(ValueError, match="needs n_tasks >= 2"):
+        es.half_agreement([], across_tasks=True)
