@@ -152,7 +152,7 @@ research-checkpoints:
 # make rl-real TASK=libero_spatial [RECIPE=es_by_task SEED=0 RL_ITERATIONS=40 EVAL_EVERY=4 RL_ARGS=...]
 # (RECIPE=explore or filtered_bc: 256 episodes an iteration, so RL_ITERATIONS=20 EVAL_EVERY=2 for the same budget and points;
 # RECIPE=es_by_task: weight-space ES, one task per iteration in turn, 256 episodes each, with
-# RL_ARGS=rl.es_ledger_from=results/rl_recipes/<run>_ledger so a fresh machine goes on from the kept ledger)
+# RL_ARGS=rl.es_ledger_from=results/rl_recipes/<run>_ledger: kept current by the run, so a fresh machine goes on from it)
 RECIPE ?= es_by_task
 SEED ?= 0
 RL_ITERATIONS ?= 40

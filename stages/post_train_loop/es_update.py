@@ -4,6 +4,7 @@ repository, so a campaign goes on from where it was on a machine whose `outputs/
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import itertools
 import json
@@ -174,3 +175,25 @@ def export_ledger(work: Path, to: Path) -> Path:
         history = torch.load(last / "training_state.pt", weights_only=False)["history"]
         (to / "history.json").write_text(json.dumps(history, indent=0, default=float))
     return to
+
+
+@contextlib.contextmanager
+def campaign_ledger(work: Path, rl):
+    """`rl.es_ledger_from=<folder>` names a campaign's ledger kept outside `outputs/` (in the repository): the run
+    is seeded from it (`seed_from_ledger`) and keeps it current. Yields the Trainer's `after_save`: the ledger and
+    history exported after every iteration's checkpoint, and once more when the sitting is interrupted, with the
+    iteration under way's finished rollouts, so a session's end or a lost machine costs nothing that was
+    finished. Yields None for a run without a campaign folder."""
+    folder = rl.get("es_ledger_from") if rl.policy_update == "es" else None
+    if not folder:
+        yield None
+        return
+
+    def keep(done: int | None = None) -> None:
+        export_ledger(work, Path(folder))
+    try:
+        yield keep
+    except KeyboardInterrupt:
+        keep()
+        log.info("the campaign's ledger and the iteration under way's finished rollouts kept in %s", folder)
+        raise

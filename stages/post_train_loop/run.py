@@ -31,7 +31,7 @@ from omegaconf import DictConfig
 from stages.post_train_loop.evaluation import (PairedCheck, imagined_success, real_success, record_imagined,
                                                validation_success, with_gap)
 from stages.post_train_loop.sweep import sweep_dir, write_summary
-from stages.post_train_loop.es_update import es_collector, es_phase, seed_from_ledger
+from stages.post_train_loop.es_update import campaign_ledger, es_collector, es_phase, seed_from_ledger
 from stages.post_train_loop.training import (Rollouts, check_pack, collector, pack_contexts, paired_guard, rl_phase,
                                              rollouts)
 from worldenv_core.envs.tasks import contract_task_ids
@@ -266,8 +266,9 @@ def run(cfg: DictConfig) -> dict:
         phase = (es_phase(policy, collect, src.n_contexts, rl, cfg.seed, work / "es_ledger", guard,
                           len(contract_task_ids(contract))) if rl.policy_update == "es" else
                  rl_phase(policy, optimizer, collect, src.n_contexts, rl, cfg.seed, guard, buffer, value))
-        trainer.fit([phase], evaluate=evaluate,
-                    evaluate_every=cfg.eval.every, deadline=deadline)
+        with campaign_ledger(work, rl) as keep_ledger:
+            trainer.fit([phase], evaluate=evaluate, evaluate_every=cfg.eval.every, deadline=deadline,
+                        after_save=keep_ledger)
         for journal in (work / "rollout_journal").glob("*"):  # every iteration it kept is checkpointed now
             retire(journal, work / "kept_rollouts" if rl.keep_rollouts else None)
         shutil.rmtree(work / "rollout_journal", ignore_errors=True)

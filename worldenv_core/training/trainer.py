@@ -152,7 +152,7 @@ class Trainer:
 
     def fit(self, phases: list[Phase], after_step: Callable[[int], None] | None = None,
             evaluate: Callable[[int, Path | None], dict] | None = None, evaluate_every: int = 0,
-            deadline: float | None = None) -> list[dict]:
+            deadline: float | None = None, after_save: Callable[[int], None] | None = None) -> list[dict]:
         """Run `phases` one after another from the restored step to the end. `after_step(done)` runs
         after every step (before its checkpoint). `evaluate(done, checkpoint)` measures the model
         before the first step (checkpoint None: the starting model), every `evaluate_every` steps
@@ -160,7 +160,9 @@ class Trainer:
         and go to the tracker's "eval" group. `deadline` (a `time.monotonic()` instant): the first
         step that ends past it is the last of this sitting, checkpointed and evaluated as the end is
         (`self.stopped_early`), so a run on a leased machine ends with its model saved rather than
-        killed; a re-run resumes to the planned total. -> the history."""
+        killed; a re-run resumes to the planned total. `after_save(done)` runs once a step's checkpoint
+        (with its evaluation) is written: a copy of the run's state outside the work dir stays current.
+        -> the history."""
         total = sum(p.steps for p in phases)
         self.stopped_early = False
         if self.overall is not None:
@@ -200,11 +202,14 @@ class Trainer:
                     late = distributed.gather(late)[0]
                 last = done == total or late
                 evaluating = evaluate is not None and (last or (evaluate_every and done % evaluate_every == 0))
-                if evaluating or done % self.checkpoint_every == 0 or last:
+                saving = evaluating or done % self.checkpoint_every == 0 or last
+                if saving:
                     path = self.save(done)
                 if evaluating:
                     self._record_eval(done, evaluate(done, path))
                     self.save(done)  # again, with the evaluation in its history
+                if saving and after_save is not None and self.main:
+                    after_save(done)
                 if late:
                     self.stopped_early = True
                     log.info("%s: past the deadline at step %d of %d; checkpointed, a re-run goes on", self.desc, done, total)

@@ -73,3 +73,28 @@ def test_no_step_from_too_few_telling_contexts_and_the_ledger_replays_it_as_none
         assert entry.get("no_step", False) == (min_mixed == 5)
         replayed = es.replay_ledger(copy.deepcopy(start), [entry])
         assert all(a.equal(b) for a, b in zip(replayed.parameters(), policy.parameters()))
+
+
+def test_a_campaign_folder_is_kept_current_and_an_interrupted_sitting_still_fills_it(tmp_path):
+    """rl.es_ledger_from: the yielded after_save exports the ledger; an interrupt exports it once more before going
+    on up; a run with no campaign folder (or not ES) gets nothing to call."""
+    import pytest
+
+    from stages.post_train_loop.es_update import campaign_ledger
+
+    rl = OmegaConf.create({"policy_update": "es", "es_ledger_from": str(tmp_path / "kept"), "es_sigma": 0.05,
+                           "es_step": 0.05, "es_top": None, "es_discount": 1.0, "es_parameters": "mean"})
+    work = tmp_path / "work"
+    es.write_ledger_entry(work / "es_ledger", 1, [3, 4], [7], torch.ones(2, 2), torch.full((2, 2), 9),
+                          torch.ones(2), rl)
+    with campaign_ledger(work, rl) as keep:
+        keep(1)
+    assert es.read_ledger(tmp_path / "kept")[0]["seeds"] == [7]
+    es.write_ledger_entry(work / "es_ledger", 2, [5, 6], [8], torch.zeros(2, 2), torch.full((2, 2), 9),
+                          torch.zeros(2), rl)
+    with pytest.raises(KeyboardInterrupt), campaign_ledger(work, rl):
+        raise KeyboardInterrupt
+    assert [e["seeds"] for e in es.read_ledger(tmp_path / "kept")] == [[7], [8]]
+    for other in ({**rl, "es_ledger_from": None}, {**rl, "policy_update": "ppo"}):
+        with campaign_ledger(work, OmegaConf.create(other)) as keep:
+            assert keep is None

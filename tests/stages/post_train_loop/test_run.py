@@ -461,9 +461,10 @@ def test_evolution_strategies_in_weight_space_on_real_and_imagined_rollouts(trai
     moved = {n for (n, a), (_, b) in zip(sft.named_parameters(), post.named_parameters()) if not a.equal(b)}
     assert not any(n.startswith("scale_head.") for n in moved)
     assert bool(moved) == (step["es_return_std"] > 0)  # no step where every member returned the same
+    # the campaign's folder (rl.es_ledger_from, none at the start) received the ledger and history after the iteration
+    assert es.read_ledger(Path(exp) / "kept_ledger") == [entry] and (Path(exp) / "kept_ledger" / "history.json").exists()
     # a campaign on a machine whose outputs/ is empty: its ledger (kept in the repository) seeds the run, which
     # goes on from the policy the ledger's steps make
-    (Path(exp) / "kept_ledger").mkdir()
     (Path(exp) / "kept_ledger" / "in_progress.json").write_text("[]")  # an older sitting's unfinished iteration
     (finished,) = [p for p in (work / "kept_rollouts").iterdir() if not p.name.endswith("_behaviour")]
     shutil.copytree(finished, work / "rollout_journal" / finished.name)  # as between its step and the next iteration
@@ -476,6 +477,7 @@ def test_evolution_strategies_in_weight_space_on_real_and_imagined_rollouts(trai
     work2 = Path(next(p for p in Manifest(exp).resolve(rec2) if p.name == "training.json")).parent
     ledger2 = es.read_ledger(work2 / "es_ledger")
     assert work2 != work and len(ledger2) == 2 and ledger2[0] == entry
+    assert es.read_ledger(kept_ledger) == ledger2  # the campaign's folder kept up with it
     again = es.replay_ledger(load_checkpoint(meta["post_trained_from"], "policy")[0], ledger2)
     final2, _ = load_checkpoint(str(work2 / "policy"), "policy")
     assert all(p.equal(q) for p, q in zip(again.parameters(), final2.parameters()))
@@ -483,6 +485,7 @@ def test_evolution_strategies_in_weight_space_on_real_and_imagined_rollouts(trai
     # marked by its physics time) and a machine without its outputs/ takes them back instead of running them
     (iter2,) = [p for p in (work2 / "kept_rollouts").iterdir() if not p.name.endswith("_behaviour")]
     records = [{**r, "seconds": {**r["seconds"], "physics": 100.0}} for r in journal_outcomes(iter2.parent)]
+    (kept_ledger / "iter_0002.json").unlink()  # the sitting ended before iteration 2's step
     (kept_ledger / "in_progress.json").write_text(json.dumps(records))
     shutil.rmtree(work2)  # the machine is gone
     resumed = post_train_loop(cfg("post_train_loop", exp, *es_args, "rl.iterations=2", f"rl.es_ledger_from={kept_ledger}"))

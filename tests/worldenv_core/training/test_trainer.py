@@ -10,7 +10,7 @@ class Boom(RuntimeError):
     pass
 
 
-def _run(work, steps=(6, 4), crash_at=None, evaluate=None, evaluate_every=0, deadline=None):
+def _run(work, steps=(6, 4), crash_at=None, evaluate=None, evaluate_every=0, deadline=None, after_save=None):
     """A two-phase fit of a linear model on per-step seeded batches, with dropout (global RNG)."""
     torch.manual_seed(0)
     model = torch.nn.Sequential(torch.nn.Linear(4, 8), torch.nn.Dropout(0.3), torch.nn.Linear(8, 1))
@@ -31,7 +31,7 @@ def _run(work, steps=(6, 4), crash_at=None, evaluate=None, evaluate_every=0, dea
         return step
 
     history = trainer.fit([Phase("a", steps[0], draw, update("a")), Phase("b", steps[1], draw, update("b"))],
-                          evaluate=evaluate, evaluate_every=evaluate_every, deadline=deadline)
+                          evaluate=evaluate, evaluate_every=evaluate_every, deadline=deadline, after_save=after_save)
     return trainer, model, history
 
 
@@ -68,6 +68,19 @@ def test_evaluations_before_the_first_step_every_n_and_at_the_end(tmp_path):
     scores = {h["step"]: h["score"] for h in history if "score" in h}
     assert scores == {0: 0.0, 2: 2.0, 4: 4.0, 5: 5.0}
     assert next(h for h in history if h["step"] == 2)["loss_a"] > 0  # the evaluation joins the step's entry
+
+
+def test_after_save_sees_each_checkpoint_with_its_evaluation(tmp_path):
+    """A copy of the run's state kept outside its work dir (an ES campaign's ledger) is made after each checkpoint,
+    when the checkpoint already holds that step's evaluation."""
+    seen = []
+
+    def after_save(done):
+        history = torch.load(tmp_path / "checkpoints" / "last" / "training_state.pt", weights_only=False)["history"]
+        seen.append((done, any("score" in h for h in history if h["step"] == done)))
+
+    _run(tmp_path, steps=(3, 2), evaluate=lambda step, _: {"score": float(step)}, evaluate_every=2, after_save=after_save)
+    assert seen == [(2, True), (3, False), (4, True), (5, True)]  # checkpoints every 3 steps, at evaluations, at the end
 
 
 def test_a_run_past_its_deadline_saves_evaluates_and_stops_and_a_rerun_goes_on(tmp_path):
