@@ -2,7 +2,7 @@
 
 RL trains on fresh placements (`worldenv_core/envs/placements.py`) and is judged on the benchmark's init states, so
 a difference between the two is a difference between training and test. This compares, per task, each free
-object's position (x / y range and mean) and the arm's 7 joint angles (mean, standard deviation, and the gap of the
+object's position and heading (x / y / z and yaw: range, mean) and the arm's 7 joint angles (mean, standard deviation, and the gap of the
 means in standard errors) over the benchmark's init states and `--fresh` validation placements (their resets are
 real: ~3 s each).
 
@@ -27,13 +27,24 @@ def mean_gap(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return gap, np.divide(gap, se, out=np.zeros_like(gap), where=se > 0)
 
 
+def yaw(quat: np.ndarray) -> np.ndarray:
+    """MuJoCo quaternions (..., 4) as w, x, y, z -> the heading about the vertical axis (rad)."""
+    w, x, y, z = np.moveaxis(quat, -1, 0)
+    return np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+
+
 def compare(bench: np.ndarray, fresh: np.ndarray, objects: dict[str, int], arm: list[int]) -> list[list]:
     """Rows of the table: flat MuJoCo states ([time, qpos, qvel]) of the benchmark and of fresh placements;
     `objects`: a free joint's name -> its qpos address; `arm`: the arm joints' qpos addresses."""
     rows = []
     for name, a in objects.items():
-        for axis, k in (("x", 0), ("y", 1)):
-            col_b, col_f = bench[:, 1 + a + k], fresh[:, 1 + a + k]
+        columns = [(axis, bench[:, 1 + a + k], fresh[:, 1 + a + k]) for axis, k in (("x", 0), ("y", 1), ("z", 2))]
+        # the heading about the vertical (degrees), as an angle from the benchmark's circular mean, so that a
+        # heading near +-180 does not read as two far-apart values
+        yaw_b, yaw_f = (yaw(states[:, 1 + a + 3:1 + a + 7]) for states in (bench, fresh))
+        centre = np.angle(np.exp(1j * yaw_b).mean())
+        columns.append(("yaw (deg)", *(np.degrees(np.angle(np.exp(1j * (v - centre)))) for v in (yaw_b, yaw_f))))
+        for axis, col_b, col_f in columns:
             gap, z = mean_gap(col_b[:, None], col_f[:, None])
             rows.append([f"{name} {axis}", f"[{col_b.min():.3f}, {col_b.max():.3f}]", f"[{col_f.min():.3f}, {col_f.max():.3f}]",
                          f"{gap[0]:+.4f}", f"{z[0]:+.1f}"])
