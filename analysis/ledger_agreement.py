@@ -59,8 +59,8 @@ def markdown(rows: list[dict]) -> str:
 
 def parse_ledger(arg: str, default_tasks: int) -> tuple[Path, int]:
     """FOLDER or FOLDER:N (its run's task count)."""
-    folder, _, n = arg.rpartition(":") if arg.rpartition(":")[2].isdigit() else (arg, "", "")
-    n_tasks = int(n) if n else default_tasks
+    head, _, n = arg.rpartition(":")
+    folder, n_tasks = (head, int(n)) if head and n.isdigit() else (arg, default_tasks)
     if n_tasks < 1:
         raise ConfigError(f"{arg}: a run has at least one task")
     return Path(folder), n_tasks

@@ -83,12 +83,12 @@ def summarise(history: list[dict], rollouts_per_iteration: int, ledger: list[dic
 
         # a context's task is its placement number mod the task count (the validated tasks: the run's); each task's
         # starts split between the halves, as the even/odd positions of a multi-task iteration would split its tasks
-        n_tasks = max(1, len(per_task))
-        agree = half_agreement(ledger, ledger[0].get("es_discount") or 1.0, n_tasks=n_tasks)
+        n_tasks, discount = max(1, len(per_task)), ledger[0].get("es_discount") or 1.0
+        agree = half_agreement(ledger, discount, n_tasks=n_tasks)
         series["direction_cosine"] = [(e["iteration"], c) for e, c in zip(ledger, agree["per_iteration"])]
         series["es_half_cosine_pooled"] = agree["pooled"]
         if n_tasks > 1:  # does a direction that helps some tasks help the others?
-            across = half_agreement(ledger, ledger[0].get("es_discount") or 1.0, n_tasks=n_tasks, across_tasks=True)
+            across = half_agreement(ledger, discount, n_tasks=n_tasks, across_tasks=True)
             if across["pooled"] == across["pooled"]:  # NaN where each iteration held one task (rl.task_focus=1)
                 series["es_half_cosine_across_tasks"] = across["pooled"]
     return {"iterations": len(steps), "real_rl_episodes": episodes, "validation": val, "validation_episodes": val_n,

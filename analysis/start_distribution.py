@@ -3,8 +3,8 @@
 RL trains on fresh placements (`worldenv_core/envs/placements.py`) and is judged on the benchmark's init states, so
 a difference between the two is a difference between training and test. This compares, per task, each free
 object's position and heading (x / y / z and yaw: range, mean) and the arm's 7 joint angles (mean, standard deviation, and the gap of the
-means in standard errors) over the benchmark's init states and `--fresh` validation placements (their resets are
-real: ~3 s each).
+means in standard errors; the nominal start both are drawn around) over the benchmark's init states and `--fresh`
+validation (or `--purpose train`) placements (their resets are real: ~3 s each).
 
     python -m analysis.start_distribution --suite libero_spatial --task 5 --fresh 40
 """
@@ -56,7 +56,7 @@ def compare(bench: np.ndarray, fresh: np.ndarray, objects: dict[str, int], arm: 
     return rows
 
 
-def measure(suite: str, task: int, n_fresh: int) -> str:
+def measure(suite: str, task: int, n_fresh: int, purpose: str = "validation") -> str:
     from worldenv_core.envs.libero_env import LiberoEnv
     from worldenv_core.envs.placements import placement_seeds
     from worldenv_core.envs.tasks import init_states
@@ -71,12 +71,15 @@ def measure(suite: str, task: int, n_fresh: int) -> str:
             objects[name.removesuffix("_joint0")] = addr[0]
     arm = [model.get_joint_qpos_addr(f"robot0_joint{i}") for i in range(1, 8)]
     fresh = []
-    for _, seed in placement_seeds(suite, [task], n_fresh, "validation"):
+    for _, seed in placement_seeds(suite, [task], n_fresh, purpose):
         env.reset(seed=seed)
         fresh.append(env.sim.get_state().flatten())  # env.sim: a hard reset builds a new one
+    nominal = env.raw.robots[0].init_qpos  # both sets' arms are drawn around it (the benchmark's noise)
     env.close()
     rows = compare(init_states(suite, task), np.array(fresh), objects, arm)
-    return "\n".join(markdown_table(["", "benchmark (50 init states)", f"fresh placements ({n_fresh})",
+    for row in rows[-len(arm):]:
+        row[0] += f" (nominal {nominal[int(row[0].split()[2]) - 1]:.3f})"
+    return "\n".join(markdown_table(["", "benchmark (50 init states)", f"fresh {purpose} placements ({n_fresh})",
                                       "gap of the means", "gap / standard error"], rows))
 
 
@@ -84,12 +87,14 @@ def main(argv=None) -> str:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--suite", default="libero_spatial")
     ap.add_argument("--task", type=int, required=True)
-    ap.add_argument("--fresh", type=int, default=40, help="validation placements to reset (~3 s each)")
+    ap.add_argument("--fresh", type=int, default=40, help="fresh placements to reset (~3 s each)")
+    ap.add_argument("--purpose", choices=["validation", "train"], default="validation",
+                    help="which fresh placements: the validation set's or those RL trains on")
     args = ap.parse_args(argv)
     with user_errors():
         if args.fresh < 2:
             raise ConfigError(f"--fresh must be at least 2 (a standard deviation), got {args.fresh}")
-        out = measure(args.suite, args.task, args.fresh)
+        out = measure(args.suite, args.task, args.fresh, args.purpose)
         print(out)
         return out
 
