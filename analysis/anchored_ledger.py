@@ -26,67 +26,24 @@ import argparse
 import json
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 import torch
 
+from analysis.ledger_policy import ledger_entries
+from analysis.policy_frames import PolicyFrames, mean_actions, policy_frames
 from worldenv_core.cli import user_errors
 from worldenv_core.errors import ConfigError
 from worldenv_core.files import write_text_atomic
 from worldenv_core.rl import es
 
 
-@dataclass
-class AnchorFrames:
-    """Recorded frames as the policy reads them, with each frame's task."""
-    images: dict[str, torch.Tensor]  # camera -> (N, 3, H, W) uint8
-    proprio: torch.Tensor            # (N, P)
-    instruction: torch.Tensor        # (N, E): the instruction's embedding
-    task_ids: torch.Tensor           # (N,) int64
-
-    def __len__(self) -> int:
-        return len(self.task_ids)
-
-    def rows(self, idx) -> tuple:
-        return {c: v[idx] for c, v in self.images.items()}, self.proprio[idx], self.instruction[idx]
-
-
-def anchor_frames(files: list, cameras: list[str], encode: Callable[[list[str]], torch.Tensor],
-                  every: int = 8) -> AnchorFrames:
-    """Every `every`-th frame (the policy reads one frame per chunk of 8) of the recorded episodes in `files`,
-    each episode read and its instruction encoded once."""
-    from worldenv_core.data.mcap_io import read_episode
-
-    if not files:
-        raise ValueError("anchor frames need at least one recorded episode")
-    images: dict[str, list] = {c: [] for c in cameras}
-    proprio, instruction, tasks = [], [], []
-    for file in files:
-        episode = read_episode(file, cameras=cameras)
-        frames = np.arange(0, len(episode.proprio), every)
-        for c in cameras:
-            images[c].append(episode.video(c)[frames])
-        proprio.append(torch.as_tensor(episode.proprio[frames], dtype=torch.float32))
-        instruction.append(encode([episode.meta.instruction]).expand(len(frames), -1))
-        tasks.append(torch.full((len(frames),), episode.meta.task_id, dtype=torch.int64))
-    return AnchorFrames({c: torch.cat(v) for c, v in images.items()}, torch.cat(proprio), torch.cat(instruction),
-                        torch.cat(tasks))
-
-
-@torch.no_grad()
-def mean_actions(policy: torch.nn.Module, frames: AnchorFrames, batch: int = 256) -> torch.Tensor:
-    """The policy's mean action chunk on every frame, (N, chunk, action_dim)."""
-    return torch.cat([policy(*frames.rows(slice(i, i + batch)))[0] for i in range(0, len(frames), batch)])
-
-
 def _rms(x: torch.Tensor) -> float:
     return float(x.pow(2).mean().sqrt()) if x.numel() else float("nan")
 
 
-def anchored_step(policy: torch.nn.Module, step: Callable[[torch.nn.Module], dict], frames: AnchorFrames,
+def anchored_step(policy: torch.nn.Module, step: Callable[[torch.nn.Module], dict], frames: PolicyFrames,
                   own_tasks, which: str = "mean", iterations: int = 200, lr: float = 1e-4, batch: int = 128,
                   seed: int = 0) -> dict:
     """`step(policy)` (in place), then `iterations` Adam steps on the parameters ES moves (`which`) pulling the
@@ -167,20 +124,12 @@ def main(argv: list[str] | None = None) -> None:
         from worldenv_core.models.checkpoint import load_checkpoint, read_config, save_model
         from worldenv_core.models.text import InstructionEncoder
 
-        try:
-            entries = es.read_ledger(args.ledger)
-        except (OSError, ValueError, KeyError) as e:
-            raise ConfigError(f"--ledger {args.ledger}: {e}") from None
-        if not entries:
-            raise ConfigError(f"--ledger {args.ledger} holds no iter_NNNN.json")
-        upto = len(entries) if args.upto is None else args.upto
-        if not 0 <= upto <= len(entries):
-            raise ConfigError(f"--upto {upto}: the ledger {args.ledger} holds iterations 1..{len(entries)}")
+        entries, upto = ledger_entries(args.ledger, args.upto)
         files = expand_episode_paths(args.frames)
         if not files:
             raise ConfigError(f"--frames {' '.join(args.frames)}: no recorded episode there")
         model, _ = load_checkpoint(args.policy, "policy")
-        frames = anchor_frames(files, model.cameras, InstructionEncoder(), args.every)
+        frames = policy_frames(files, model.cameras, InstructionEncoder(), args.every)
         missing = sorted(set(range(args.n_tasks)) - set(frames.task_ids.tolist()))
         if missing:
             raise ConfigError(f"--frames: no recorded episode of task(s) {missing}: their actions cannot be anchored")

@@ -22,8 +22,9 @@ from worldenv_core.models.checkpoint import load_checkpoint, read_config, save_m
 from worldenv_core.rl import es
 
 
-def ledger_policy(policy: str | Path, ledger: str | Path, out: str | Path, upto: int | None = None) -> Path:
-    """`policy` moved by `ledger`'s iterations 1..`upto` (all by default), saved at `out`. -> `out`"""
+def ledger_entries(ledger: str | Path, upto: int | None = None) -> tuple[list[dict], int]:
+    """A kept ledger's entries and how many of them to replay (all by default), or a one-line error naming
+    the folder. -> (entries, upto)"""
     try:
         entries = es.read_ledger(ledger)
     except (OSError, ValueError, KeyError) as e:
@@ -33,6 +34,12 @@ def ledger_policy(policy: str | Path, ledger: str | Path, out: str | Path, upto:
     upto = len(entries) if upto is None else upto
     if not 0 <= upto <= len(entries):
         raise ConfigError(f"--upto {upto}: the ledger {ledger} holds iterations 1..{len(entries)}")
+    return entries, upto
+
+
+def ledger_policy(policy: str | Path, ledger: str | Path, out: str | Path, upto: int | None = None) -> Path:
+    """`policy` moved by `ledger`'s iterations 1..`upto` (all by default), saved at `out`. -> `out`"""
+    entries, upto = ledger_entries(ledger, upto)
     model, _ = load_checkpoint(policy, "policy")
     es.replay_ledger(model, entries, upto)
     config = read_config(policy)

@@ -38,8 +38,8 @@ import numpy as np
 import torch
 
 from analysis.keep import portable
+from analysis.policy_frames import mean_actions, policy_frames
 from worldenv_core.cli import user_errors
-from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.data.selection import expand_episode_paths
 from worldenv_core.errors import ConfigError
 from worldenv_core.models.checkpoint import WEIGHTS, load_checkpoint, load_weights, read_config, save_state
@@ -121,16 +121,9 @@ def action_deltas(base: torch.nn.Module, moved: list[torch.nn.Module], files: li
     on every `every`-th frame of the recorded episodes in `files` (each episode read and encoded once)."""
     from worldenv_core.models.text import InstructionEncoder
 
-    encoder, diffs = InstructionEncoder(), [[] for _ in moved]
-    for file in files:
-        episode = read_episode(file, cameras=base.cameras)
-        frames = np.arange(0, len(episode.proprio), every)
-        images = {c: episode.video(c)[frames] for c in base.cameras}
-        inputs = (images, torch.as_tensor(episode.proprio[frames]), encoder([episode.meta.instruction] * len(frames)))
-        start = base(*inputs)[0]
-        for out, model in zip(diffs, moved):
-            out.append(model(*inputs)[0] - start)
-    return [torch.cat(d).flatten() for d in diffs]
+    frames = policy_frames(files, base.cameras, InstructionEncoder(), every)
+    start = mean_actions(base, frames)
+    return [(mean_actions(model, frames) - start).flatten() for model in moved]
 
 
 def action_changes(base: torch.nn.Module, moved: list[torch.nn.Module], files: list, every: int = 8) -> list[float]:

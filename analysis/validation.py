@@ -14,21 +14,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from pathlib import Path
 
 from worldenv_core.cli import user_errors
 from worldenv_core.errors import ConfigError
 from worldenv_core.files import write_text_atomic
-
-
-def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """The Wilson score interval of a success rate (95 % by default)."""
-    if n <= 0:
-        raise ValueError("an interval needs at least one episode")
-    p = successes / n
-    centre, half = p + z * z / (2 * n), z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
-    return (centre - half) / (1 + z * z / n), (centre + half) / (1 + z * z / n)
+from worldenv_core.stats import wilson
 
 
 def summary_line(name: str, result: dict) -> str:

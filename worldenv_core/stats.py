@@ -1,7 +1,7 @@
 """The statistics the project's figures rest on, each exact where it can be: classification metrics
 (the reflector's verdict: AUROC, F1), rank correlation, intervals by resampling whole clusters, the
 exact McNemar test and paired interval for two policies on the same episodes, the sign test's
-binomial tail, and the exact permutation test over seeds."""
+binomial tail, the exact permutation test over seeds, and the Wilson interval of a success rate."""
 
 from __future__ import annotations
 
@@ -118,3 +118,12 @@ def permutation_p(a: np.ndarray, b: np.ndarray, greater: bool = False) -> float:
     if not greater:
         diffs, observed = np.abs(diffs), abs(observed)
     return float((diffs >= observed - 1e-12).mean())
+
+
+def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """The Wilson score interval of a success rate (95 % by default)."""
+    if n <= 0:
+        raise ValueError("an interval needs at least one episode")
+    p = successes / n
+    centre, half = p + z * z / (2 * n), z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
+    return (centre - half) / (1 + z * z / n), (centre + half) / (1 + z * z / n)

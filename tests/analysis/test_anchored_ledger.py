@@ -2,7 +2,8 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from analysis.anchored_ledger import AnchorFrames, anchored_replay, anchored_step, mean_actions, own_tasks
+from analysis.anchored_ledger import anchored_replay, anchored_step, own_tasks
+from analysis.policy_frames import PolicyFrames, mean_actions
 from worldenv_core.rl import es
 
 
@@ -24,7 +25,7 @@ class TinyPolicy(torch.nn.Module):
 def frames(n=64):
     g = torch.Generator().manual_seed(1)
     tasks = torch.arange(n) % 2
-    return AnchorFrames({"cam": torch.zeros(n, 3, 4, 4, dtype=torch.uint8)}, torch.randn(n, 4, generator=g),
+    return PolicyFrames({"cam": torch.zeros(n, 3, 4, 4, dtype=torch.uint8)}, torch.randn(n, 4, generator=g),
                         torch.nn.functional.one_hot(tasks, 2).float(), tasks)
 
 

@@ -3,20 +3,12 @@ import json
 import pytest
 import torch
 
-from analysis.validation import main, summary_line, wilson
+from analysis.validation import main, summary_line
 from stages.post_train_loop.evaluation import validation_key
 from worldenv_core.models.checkpoint import save_model
 from worldenv_core.stage import compose_config, task_contract
 
 LINEAR = {"_target_": "torch.nn.Linear", "in_features": 3, "out_features": 2}
-
-
-def test_wilson_interval_matches_the_textbook_figures():
-    lo, hi = wilson(69, 100)
-    assert lo == pytest.approx(0.5937, abs=1e-4) and hi == pytest.approx(0.7722, abs=1e-4)  # by hand
-    assert wilson(0, 10)[0] == pytest.approx(0.0, abs=1e-12) and wilson(10, 10)[1] == pytest.approx(1.0)
-    with pytest.raises(ValueError):
-        wilson(0, 0)
 
 
 def test_a_policy_a_run_validated_is_read_back_from_the_runs_cache(tmp_path, capsys):

@@ -6,7 +6,7 @@ import pytest
 import numpy as np
 
 from worldenv_core.errors import ConfigError
-from worldenv_core.stats import paired_difference_ci, paired_success_test, permutation_p, spearman
+from worldenv_core.stats import paired_difference_ci, paired_success_test, permutation_p, spearman, wilson
 
 
 def test_paired_success_test_by_hand():
@@ -66,3 +66,11 @@ def test_the_permutation_p_is_exact_over_every_relabelling():
     assert permutation_p(np.array([0.5, 0.5]), np.array([0.5, 0.5])) == 1.0
     with pytest.raises(ConfigError, match="too many"):
         permutation_p(np.zeros(20), np.zeros(20))
+
+
+def test_wilson_interval_matches_the_textbook_figures():
+    lo, hi = wilson(69, 100)
+    assert lo == pytest.approx(0.5937, abs=1e-4) and hi == pytest.approx(0.7722, abs=1e-4)  # by hand
+    assert wilson(0, 10)[0] == pytest.approx(0.0, abs=1e-12) and wilson(10, 10)[1] == pytest.approx(1.0)
+    with pytest.raises(ValueError):
+        wilson(0, 0)
