@@ -53,7 +53,10 @@ def _experiment(root):
                          imagined_success={"0": 0.0, "2": 0.5})
     loop = m.latest("post_train_loop")
     for policy, success in (("sft", [True, False]), ("post_trained", [True, True])):
-        with StageRun(m, "evaluate", {**TAGS, "termination": "oracle", "policy": policy}, {}) as s:
+        # each evaluation its own run (its own config), as two policies' evaluations are: with one config and
+        # a start in the same second they would read as one termination=all pass and be timed once
+        with StageRun(m, "evaluate", {**TAGS, "termination": "oracle", "policy": policy},
+                      {"policy_from": policy}) as s:
             if policy == "post_trained":
                 s.inputs.append(loop.id)
             rows = [{"task_id": 0, "init_state": i, "success": ok} for i, ok in enumerate(success)]
