@@ -160,8 +160,9 @@ def markdown(runs: dict[str, dict]) -> str:
     def fmt(x, spec=".3f"):
         return "" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, spec)
 
-    def mean(pts):
-        return sum(y for _, y in pts) / len(pts) if pts else None
+    def mean(pts):  # an iteration whose halves left nothing to compare reads NaN (undefined, not zero): skipped
+        ys = [y for _, y in pts if not (isinstance(y, float) and math.isnan(y))]
+        return sum(ys) / len(ys) if ys else None
     rows = ["| run | iterations | real RL episodes | validation (episodes: success) | mean exact KL | "
             "mean direction cosine | mixed groups for cos 0.9 (pooled) | episodes / hour |",
             "| --- | --- | --- | --- | --- | --- | --- | --- |"]

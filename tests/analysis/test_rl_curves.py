@@ -29,6 +29,8 @@ def test_summary_counts_real_episodes_and_splits_the_time():
     g = s["gradient_signal"]  # pooled: |s|^2 10, sigma^2 450 -> 4.26 x 45 groups
     assert (g["signal_sq"], g["noise_sq"]) == (10.0, 450.0) and g["groups_for_cos_0.9"] == pytest.approx(0.81 / 0.19 * 45)
     assert "| r | 4 | 512 | 0: 0.50, 256: 0.60 | 0.0400 | 0.100 | 192 | 768 |" in markdown({"r": s})
+    s["direction_cosine"][1] = (2, float("nan"))  # an iteration with nothing to compare is skipped, not a blank mean
+    assert "| 0.0400 | 0.100 | 192 |" in markdown({"r": s})
 
 
 def test_the_cli_reads_a_work_dir_and_keeps_the_curve(tmp_path):
