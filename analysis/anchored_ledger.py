@@ -78,7 +78,6 @@ def anchored_step(policy: torch.nn.Module, step: Callable[[torch.nn.Module], dic
             "anchor_own_error": _rms((final - after)[own]) / moved_own if moved_own else float("nan")}
 
 
-
 def own_tasks(contexts: list[int], n_tasks: int) -> set[int]:
     """The tasks an iteration's fresh placements are of."""
     return {int(c) % n_tasks for c in contexts}
