@@ -234,7 +234,8 @@ def imagined_member_outcomes(policy: torch.nn.Module, env, contexts: list, membe
     """Every member (`antithetic_members`: `policy` moved by (seed, coef)) from every context in the imagined
     environment (`ImaginedEnv`: the world simulator, the reflector's verdict as the reward), with its mean
     actions. All members x contexts rollouts advance together through the world model, a chunk at a time;
-    each member's policy reads only its own rows. -> success (the verdict) and steps, (contexts, members)."""
+    each member's policy reads only its own rows. -> success (the verdict), steps and reward (the reflector's R where
+    the rollout ended: a graded verdict where none crossed eta), (contexts, members)."""
     import copy
     import time
 
@@ -253,5 +254,6 @@ def imagined_member_outcomes(policy: torch.nn.Module, env, contexts: list, membe
     shape = (len(members), n)
     total = time.perf_counter() - t0
     return {"success": state.by_reflector.cpu().view(shape).T, "steps": state.t.cpu().view(shape).T,
+            "reward": state.reward.float().cpu().view(shape).T,
             "episodes": 0, "errors": 0,  # imagined: no real episode
             "timing": {"policy": t_policy, "imagination": total - t_policy}}

@@ -27,7 +27,8 @@ def test_each_member_acts_with_its_own_weights_in_one_batch_through_the_imagined
     policy, contexts, encoder = _policy_and_contexts(3)
     members = es.antithetic_members([11, 12], 0.5)
     out = es.imagined_member_outcomes(policy, VerdictEnv(), contexts, members, encoder)
-    assert out["success"].shape == out["steps"].shape == (3, 4) and out["episodes"] == 0
+    assert out["success"].shape == out["steps"].shape == out["reward"].shape == (3, 4) and out["episodes"] == 0
+    assert torch.equal(out["success"], out["reward"] >= 0.5)  # the graded verdict behind each success
     for m, (seed, coef) in enumerate(members):  # the same member alone, in a batch of its own
         alone = es.imagined_member_outcomes(es.perturb(copy.deepcopy(policy), seed, coef), VerdictEnv(), contexts,
                                             [(seed, 0.0)], encoder)

@@ -1,0 +1,176 @@
+"""Would ES in imagination step where the real simulator did? A kept real-route ledger replayed in the world model.
+
+An ES iteration of the real route (`rl.policy_update=es`, `worldenv_core/rl/es.py`) keeps in its ledger every
+member's real outcome from every fresh placement it met, and the members follow from the starting policy and the
+ledger's seeds. This puts the same members at the same placements' first frames in the imagined environment (the
+world simulator, the reflector's verdict as success: `es.imagined_member_outcomes`, what `env=imagined` ES runs)
+and compares the two verdicts where it matters for ES:
+
+* episode by episode: imagined and real success rates, the share of imagined successes that fail for real
+  (the from-start hack rate) and of real successes imagination recognises;
+* the step: the cosine between the pairs' differences R(+k) - R(-k) measured in imagination and for real, per
+  iteration and pooled. The ARS step is the sum of the pairs' directions weighted by those differences, and
+  independent Gaussian directions in a million-dimensional weight space are orthogonal to within ~1e-3, so this
+  is the cosine between the step imagination would take and the one the real simulator took. About 0 (within
+  +-1/sqrt(pairs)) where the world model's verdict carries none of the reward's direction, 1 where it is the
+  real one. The same with the reflector's graded R where each imagined rollout ended as the return (what a
+  step could follow where no imagined rollout crosses eta). No real episode is spent: the real side is the ledger's.
+
+    python -m analysis.imagined_ledger +task=libero_spatial --ledger results/rl_recipes/es_many_pairs_seed0_ledger \\
+        --policy checkpoints/libero_spatial/sft --iterations 1 10 20 --json results/rl_recipes/imagined_ledger.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import torch
+
+from worldenv_core.cli import user_errors
+from worldenv_core.errors import ConfigError
+from worldenv_core.files import write_text_atomic
+
+
+def verdict_agreement(real: torch.Tensor, imagined: torch.Tensor) -> dict:
+    """(contexts, members) real and imagined successes -> how far the imagined verdict is the real one, episode by
+    episode and as the ES step's direction (members ordered as `es.antithetic_members`: pair k = 2k, 2k+1)."""
+    real, imagined = real.bool(), imagined.bool()
+    if real.shape != imagined.shape or real.shape[1] % 2:
+        raise ValueError(f"real {tuple(real.shape)} and imagined {tuple(imagined.shape)} outcomes must be the same "
+                         "(contexts, members) with members in antithetic pairs")
+    d_real, d_im = pair_differences(real), pair_differences(imagined)
+    hits = int((imagined & real).sum())
+    return {"episodes": real.numel(), "real_success": float(real.float().mean()),
+            "imagined_success": float(imagined.float().mean()),
+            "agreement": float((real == imagined).float().mean()),
+            "hack_rate": 1 - hits / int(imagined.sum()) if imagined.any() else float("nan"),
+            "recall": hits / int(real.sum()) if real.any() else float("nan"),
+            "step_cosine": cosine(d_real, d_im), "both_succeed": hits, "imagined_successes": int(imagined.sum()),
+            "real_successes": int(real.sum()), "dot": float(d_real @ d_im),
+            "real_sq": float(d_real @ d_real), "imagined_sq": float(d_im @ d_im)}
+
+
+def pair_differences(returns: torch.Tensor) -> torch.Tensor:
+    """(contexts, members) successes or rewards -> each antithetic pair's difference of their means over the
+    contexts, R(+k) - R(-k)."""
+    r = returns.float().mean(0).view(-1, 2)
+    return r[:, 0] - r[:, 1]
+
+
+def cosine(a: torch.Tensor, b: torch.Tensor) -> float:
+    """NaN where either side has no step (every pair level)."""
+    n = float(a.norm() * b.norm())
+    return float(a @ b) / n if n > 0 else float("nan")
+
+
+def pooled(rows: list[dict]) -> dict:
+    """The iterations together: the step cosine pooled as `es.half_agreement` pools its halves, rates over episodes."""
+    n = sum(r["episodes"] for r in rows)
+    sq = sum(r["real_sq"] for r in rows) * sum(r["imagined_sq"] for r in rows)
+    imagined, real = sum(r["imagined_successes"] for r in rows), sum(r["real_successes"] for r in rows)
+    hits = sum(r["both_succeed"] for r in rows)
+    return {"iterations": len(rows), "episodes": n, "real_success": real / n, "imagined_success": imagined / n,
+            "agreement": sum(r["agreement"] * r["episodes"] for r in rows) / n,
+            "hack_rate": 1 - hits / imagined if imagined else float("nan"),
+            "recall": hits / real if real else float("nan"),
+            "step_cosine": sum(r["dot"] for r in rows) / sq ** 0.5 if sq > 0 else float("nan"),
+            **({"reward_step_cosine": cosine_of(sum(r["reward_dot"] for r in rows), sum(r["real_sq"] for r in rows),
+                                                sum(r["reward_sq"] for r in rows)),
+                "imagined_reward": sum(r["imagined_reward"] * r["episodes"] for r in rows) / n}
+               if all("reward_dot" in r for r in rows) else {})}
+
+
+def cosine_of(dot: float, sq_a: float, sq_b: float) -> float:
+    return dot / (sq_a * sq_b) ** 0.5 if sq_a * sq_b > 0 else float("nan")
+
+
+def placement_contexts(contract, numbers: list[int], camera: str) -> list:
+    """The fresh placements a real-route iteration met (`training.placements` numbering) as imagined contexts: each
+    placement's first frame rendered by the real simulator, with its proprio and instruction."""
+    from stages.post_train_loop.training import placements
+    from worldenv_core.envs.recording import cached_env
+    from worldenv_core.envs.replay import restore
+    from worldenv_core.imagination.env import Context
+
+    start_of, out = placements(contract), []
+    for k in numbers:
+        start, instruction = start_of(int(k))
+        env = cached_env(contract.suite, start.task_id, [camera], contract.image_size, render=True)
+        frame = restore(env, start)
+        image = torch.from_numpy(env.render([camera])[camera]).permute(2, 0, 1).contiguous()
+        out.append(Context(task_id=start.task_id, instruction=instruction, frame=image,
+                           proprio=torch.as_tensor(frame.proprio, dtype=torch.float32)))
+    return out
+
+
+def line(name: str, r: dict) -> str:
+    graded = (f", with the reflector's R as return {r['reward_step_cosine']:+.2f} (mean R {r['imagined_reward']:.3f})"
+              if "reward_step_cosine" in r else "")
+    return (f"{name}: real {r['real_success']:.2f}, imagined {r['imagined_success']:.2f}, agreement "
+            f"{r['agreement']:.2f}, hack rate {r['hack_rate']:.2f}, recall {r['recall']:.2f}, "
+            f"step cosine {r['step_cosine']:+.2f}{graded}")
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--ledger", required=True, type=Path, help="a real-route ES ledger (iter_NNNN.json)")
+    ap.add_argument("--policy", required=True, help="the run's starting policy (checkpoint folder)")
+    ap.add_argument("--iterations", type=int, nargs="+", required=True, help="ledger iterations to replay (from 1)")
+    ap.add_argument("--worldsim", help="world-simulator checkpoint (default: checkpoints/<suite>/worldsim)")
+    ap.add_argument("--reflector", help="reflector checkpoint (default: checkpoints/<suite>/reflector)")
+    ap.add_argument("--eta", type=float, default=None, help="the verdict's threshold (default: the reflector's)")
+    ap.add_argument("--json", type=Path, help="write the per-iteration and pooled figures here")
+    ap.add_argument("overrides", nargs="*", help="Hydra overrides naming the task (+task=...)")
+    args = ap.parse_args(argv)
+    with user_errors():
+        from worldenv_core.imagination.env import build_imagined_env
+        from worldenv_core.models.checkpoint import load_checkpoint
+        from worldenv_core.models.text import InstructionEncoder
+        from worldenv_core.rl import es
+        from worldenv_core.rl.termination import reflector_eta
+        from worldenv_core.stage import compose_config, task_contract
+
+        cfg = compose_config("post_train_loop", ["scale=small", *args.overrides])
+        contract = task_contract(cfg)
+        try:
+            entries = es.read_ledger(args.ledger)
+        except (OSError, ValueError, KeyError) as e:
+            raise ConfigError(f"--ledger {args.ledger}: {e}") from None
+        bad = [i for i in args.iterations if not 1 <= i <= len(entries)]
+        if bad:
+            raise ConfigError(f"--iterations {bad}: the ledger holds iterations 1-{len(entries)}")
+        worldsim = args.worldsim or f"checkpoints/{contract.suite}/worldsim"
+        reflector = args.reflector or f"checkpoints/{contract.suite}/reflector"
+        for what, path in (("--worldsim", worldsim), ("--reflector", reflector), ("--policy", args.policy)):
+            if not (Path(path) / "model.safetensors").exists():
+                raise ConfigError(f"{what} {path}: no model.safetensors there (a checkpoint folder is needed)")
+        encoder = InstructionEncoder()
+        env, camera = build_imagined_env(worldsim, reflector, reflector_eta(reflector, args.eta), encoder,
+                                         contract.max_steps, None, "cpu", contract)
+        rows = {}
+        for it in sorted(set(args.iterations)):
+            e = entries[it - 1]
+            policy, _ = load_checkpoint(args.policy, "policy", contract, device="cpu")
+            es.replay_ledger(policy, entries, it - 1)  # the base the iteration's members were drawn around
+            contexts = placement_contexts(contract, e["contexts"], camera)
+            members = es.antithetic_members(e["seeds"], e["es_sigma"])
+            out = es.imagined_member_outcomes(policy, env, contexts, members, encoder, e["es_parameters"])
+            real = torch.tensor(e["success"])
+            d_real, d_reward = pair_differences(real), pair_differences(out["reward"])
+            rows[it] = {**verdict_agreement(real, out["success"]), "imagined_reward": float(out["reward"].mean()),
+                        "reward_step_cosine": cosine(d_real, d_reward), "reward_dot": float(d_real @ d_reward),
+                        "reward_sq": float(d_reward @ d_reward),
+                        "imagined_steps": float(out["steps"].float().mean()), "seconds": out["timing"]}
+            print(line(f"iteration {it}", rows[it]), flush=True)
+        result = {"ledger": str(args.ledger), "policy": args.policy, "worldsim": worldsim, "reflector": reflector,
+                  "eta": env.eta, "iterations": rows, "pooled": pooled(list(rows.values()))}
+        print(line("pooled", result["pooled"]))
+        if args.json:
+            write_text_atomic(args.json, json.dumps(result, indent=1))
+        return result
+
+
+if __name__ == "__main__":
+    main()
