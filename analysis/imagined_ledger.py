@@ -49,6 +49,7 @@ def verdict_agreement(real: torch.Tensor, imagined: torch.Tensor) -> dict:
             "recall": hits / int(real.sum()) if real.any() else float("nan"),
             "step_cosine": cosine(d_real, d_im), "both_succeed": hits, "imagined_successes": int(imagined.sum()),
             "real_successes": int(real.sum()), "dot": float(d_real @ d_im),
+            "real_by_context": real.float().mean(1).tolist(), "imagined_by_context": imagined.float().mean(1).tolist(),
             "real_sq": float(d_real @ d_real), "imagined_sq": float(d_im @ d_im)}
 
 

@@ -12,6 +12,7 @@ def test_an_imagined_verdict_equal_to_the_real_one_steps_the_same_way():
     assert pair_differences(real).tolist() == [0.5, 0.5]
     r = verdict_agreement(real, real.clone())
     assert r["agreement"] == 1 and r["hack_rate"] == 0 and r["recall"] == 1 and r["step_cosine"] == pytest.approx(1)
+    assert r["real_by_context"] == r["imagined_by_context"] == [0.75, 0.25]  # how far the start decides it
 
 
 def test_the_step_cosine_reads_the_pairs_differences_not_the_success_rate():
