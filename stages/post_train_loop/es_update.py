@@ -14,8 +14,10 @@ import time
 from pathlib import Path
 
 import torch
+from omegaconf import DictConfig
 
 from stages.post_train_loop.training import draw_contexts, focus_positions, placements
+from worldenv_core.envs.tasks import contract_task_ids
 from worldenv_core.errors import ConfigError
 from worldenv_core.files import write_text_atomic
 from worldenv_core.models.checkpoint import read_config, save_model
@@ -53,7 +55,7 @@ def es_collector(cfg, contract, src, encode, policy_path: str, pmeta: dict, work
 
 
 def es_phase(policy, collect, n_contexts: int | None, rl, seed: int, ledger: Path | None = None,
-             guard=None, n_tasks: int = 1) -> Phase:
+             guard=None, n_tasks: int = 1, context_tasks: list[int] | None = None) -> Phase:
     """`rl.policy_update=es`: one iteration = `rl.es_pairs` antithetic weight-space members (`worldenv_core.rl.es`),
     each acting with its mean actions from the same `rl.contexts_per_iteration` contexts, then one ARS step.
     Contexts and directions are the iteration's generator's draws, so a resumed iteration runs the same
@@ -62,13 +64,14 @@ def es_phase(policy, collect, n_contexts: int | None, rl, seed: int, ledger: Pat
     that the run's weights follow from (`es.replay_ledger`). `guard` (`training.paired_guard`, the imagined
     route): a step after which the policy's imagined successes fail for real beyond `rl.guard_max_hack_rate`
     is undone, and the ledger says so. `rl.task_focus` (of the `n_tasks` trained on): each iteration's
-    contexts from that many tasks, in turn. `rl.es_min_mixed`: no step from an iteration in which fewer
+    contexts from that many tasks, in turn (listed contexts, e.g. keyframes: `context_tasks` names each one's task
+    position). `rl.es_min_mixed`: no step from an iteration in which fewer
     contexts than that told any two members apart (a full-size step would follow one or two starts' luck)."""
     def step(item) -> dict:
         it, g = item
         t0 = time.perf_counter()
         focus = focus_positions(it, rl.get("task_focus"), n_tasks)
-        picks = draw_contexts(g, n_contexts, rl.contexts_per_iteration, focus)
+        picks = draw_contexts(g, n_contexts, rl.contexts_per_iteration, focus, context_tasks)
         seeds = torch.randint(2**62, (rl.es_pairs,), generator=g).tolist()
         members = es.antithetic_members(seeds, rl.es_sigma)
         out = collect(copy.deepcopy(policy).eval(), picks, members)
@@ -101,6 +104,21 @@ def es_phase(policy, collect, n_contexts: int | None, rl, seed: int, ledger: Pat
                 "rollout_errors": float(out["errors"]), **stats, "seconds": time.perf_counter() - t0}
     return Phase("rl", rl.iterations, lambda start: per_step(
         lambda it: (it, torch.Generator().manual_seed(step_seed(seed, it))), start), step)
+
+
+def context_tasks(cfg: DictConfig, contract, src) -> list[int] | None:
+    """`rl.task_focus` over listed contexts (collected episodes' starts or keyframes): each context's position in the
+    task list, every task trained on checked to have one before any rollout. None: fresh placements, or no focus."""
+    if cfg.rl.get("task_focus") is None or src.n_contexts is None:  # fresh placements: numbered by task already
+        return None
+    order = {t: i for i, t in enumerate(contract_task_ids(contract))}
+    tasks = [order[c.task_id] for c in (src.starts if cfg.env == "real" else src.contexts)]
+    present = set(tasks)
+    missing = sorted(t for t, i in order.items() if i not in present)
+    if missing:
+        raise ConfigError(f"rl.task_focus takes each task's contexts in turn, but task(s) {missing} have no context "
+                          "(collect episodes of every task trained on)")
+    return tasks
 
 
 LEDGER_MUST_MATCH = ("es_pairs", "contexts_per_iteration", *es.LEDGER_SETTINGS)

@@ -31,7 +31,7 @@ from omegaconf import DictConfig
 from stages.post_train_loop.evaluation import (PairedCheck, imagined_success, real_success, record_imagined,
                                                validation_success, with_gap)
 from stages.post_train_loop.sweep import sweep_dir, write_summary
-from stages.post_train_loop.es_update import campaign_ledger, es_collector, es_phase, seed_from_ledger
+from stages.post_train_loop.es_update import campaign_ledger, context_tasks, es_collector, es_phase, seed_from_ledger
 from stages.post_train_loop.training import (Rollouts, check_pack, collector, pack_contexts, paired_guard, rl_phase,
                                              rollouts)
 from worldenv_core.envs.tasks import contract_task_ids
@@ -145,9 +145,9 @@ def validate(cfg: DictConfig) -> None:
     focus = cfg.rl.get("task_focus")
     if focus is not None:
         n_tasks = len(contract_task_ids(task_contract(cfg)))
-        if cfg.rl.policy_update != "es" or cfg.rl.contexts != "placements" or cfg.rl.placement_pool is not None:
-            raise ConfigError("rl.task_focus draws each iteration's fresh placements from a few tasks in turn: it needs "
-                              "rl.policy_update=es and rl.contexts=placements without rl.placement_pool")
+        if cfg.rl.policy_update != "es" or cfg.rl.placement_pool is not None:
+            raise ConfigError("rl.task_focus draws each iteration's contexts from a few tasks in turn: it needs "
+                              "rl.policy_update=es, and fresh placements without rl.placement_pool or listed contexts")
         if not isinstance(focus, int) or not 1 <= focus <= n_tasks:
             raise ConfigError(f"rl.task_focus must be null (every task) or an int in 1..{n_tasks} (the tasks trained "
                               f"on), got {focus!r}")
@@ -264,7 +264,7 @@ def run(cfg: DictConfig) -> dict:
         buffer = SuccessBuffer(work / "success_buffer") if rl.policy_update == "filtered_bc" else None  # kept: the data
         guard = paired_guard(cfg, contract, src, encode)
         phase = (es_phase(policy, collect, src.n_contexts, rl, cfg.seed, work / "es_ledger", guard,
-                          len(contract_task_ids(contract))) if rl.policy_update == "es" else
+                          len(contract_task_ids(contract)), context_tasks(cfg, contract, src)) if rl.policy_update == "es" else
                  rl_phase(policy, optimizer, collect, src.n_contexts, rl, cfg.seed, guard, buffer, value))
         with campaign_ledger(work, rl) as keep_ledger:
             trainer.fit([phase], evaluate=evaluate, evaluate_every=cfg.eval.every, deadline=deadline,

@@ -284,22 +284,38 @@ def chosen(cfg: DictConfig, stage, contract: TaskContract, starts: list[RealStar
 
 
 def draw_contexts(g: torch.Generator, n_contexts: int | None, count: int,
-                  focus: tuple[list[int], int] | None = None) -> list[int]:
+                  focus: tuple[list[int], int] | None = None, context_tasks: list[int] | None = None) -> list[int]:
     """An iteration's context numbers, its generator's first draw: `count` of the `n_contexts` at
     random with replacement, or (None: fresh placements) consecutive numbers from a random 40-bit
     start. Iteration i (from 0) draws from `Generator().manual_seed(step_seed(seed, i))`, so which
-    contexts any iteration of a run saw follows from its seed (`analysis.pool_revisits`). `focus`
-    (fresh placements only): (positions in the task list, its length): placements of those tasks
-    alone, in turn (`placements` numbers placement k of the task at position k % length)."""
+    contexts any iteration of a run saw follows from its seed (`analysis.pool_revisits`). `focus`:
+    (positions in the task list, its length): contexts of those tasks alone, in turn. Fresh placements:
+    `placements` numbers placement k of the task at position k % length. Listed contexts (keyframes of
+    collected episodes): `context_tasks` gives each one's task position, and each task's turn takes a
+    context of its own at random, distinct ones while the task has any left this iteration."""
     if n_contexts is None:
         base = int(torch.randint(2**40, (1,), generator=g))
         if focus is None:
             return list(range(base, base + count))
         positions, n_tasks = focus
         return [n_tasks * (base + c // len(positions)) + positions[c % len(positions)] for c in range(count)]
-    if focus is not None:
-        raise ValueError("a task focus draws fresh placements: it needs rl.contexts=placements without a pool")
-    return torch.randint(n_contexts, (count,), generator=g).tolist()
+    if focus is None:
+        return torch.randint(n_contexts, (count,), generator=g).tolist()
+    if context_tasks is None or len(context_tasks) != n_contexts:
+        raise ValueError("a task focus over listed contexts needs each context's task position (context_tasks)")
+    positions, _ = focus
+    own = {p: [i for i, t in enumerate(context_tasks) if t == p] for p in positions}
+    empty = [p for p, idx in own.items() if not idx]
+    if empty:
+        raise ValueError(f"no context of the task(s) at position(s) {empty} to focus on")
+    queues = {p: [] for p in positions}
+    out = []
+    for c in range(count):
+        p = positions[c % len(positions)]
+        if not queues[p]:  # a fresh shuffle of the task's contexts: no repeat until every one was drawn
+            queues[p] = [own[p][i] for i in torch.randperm(len(own[p]), generator=g).tolist()]
+        out.append(queues[p].pop())
+    return out
 
 
 def focus_positions(iteration: int, per_iteration: int | None, n_tasks: int) -> tuple[list[int], int] | None:

@@ -514,7 +514,7 @@ def test_evolution_strategies_in_weight_space_on_real_and_imagined_rollouts(trai
     # the imagined route: the members' rollouts as one batch through the world model, the reflector's verdict
     # as success, no real episode spent on training
     imagined = post_train_loop(cfg("post_train_loop", exp, *LOOP, "rl.policy_update=es", "rl.iterations=1",
-                                   "rl.es_pairs=2", "rl.contexts_per_iteration=2", "eval.every=0"))
+                                   "rl.es_pairs=2", "rl.contexts_per_iteration=2", "eval.every=0", "rl.task_focus=1"))
     assert imagined["train_real_episodes"] == 0 and imagined["iterations"] == 1
     rec3 = Manifest(exp).latest("post_train_loop", task="tiny", env="imagined")
     work3 = Path(next(p for p in Manifest(exp).resolve(rec3) if p.name == "training.json")).parent

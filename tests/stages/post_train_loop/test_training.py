@@ -1,6 +1,7 @@
 """LOOP's contexts from fresh placements and the recipes as config groups (no simulator)."""
 import collections
 
+import pytest
 import torch
 from omegaconf import OmegaConf
 
@@ -122,9 +123,20 @@ def test_a_task_focus_draws_each_iteration_from_the_next_tasks_in_turn(contract)
         assert [start(k)[0].task_id for k in picks] == tasks * 6 and len(set(picks)) == 6
     picks = draw_contexts(torch.Generator().manual_seed(7), None, 4, focus_positions(1, 2, 3))
     assert [start(k)[0].task_id for k in picks] == [5, 0, 5, 0] and len(set(picks)) == 4
-    try:
+    with pytest.raises(ValueError, match="each context's task position"):
         draw_contexts(torch.Generator(), 10, 4, ([0], 3))
-    except ValueError as e:
-        assert "fresh placements" in str(e)
-    else:
-        raise AssertionError("a task focus over collected episodes' starts must be refused")
+
+
+def test_a_task_focus_over_listed_contexts_takes_each_tasks_own_in_turn_without_repeats():
+    """Keyframes of collected episodes (listed contexts): iteration i's contexts are of the focused tasks, in
+    turn, each task's distinct until it has none left, and the same draw for the same generator."""
+    from stages.post_train_loop.training import draw_contexts
+
+    tasks = [0, 1, 2, 0, 1, 0, 2, 0]  # the task position of each listed context
+    picks = draw_contexts(torch.Generator().manual_seed(3), 8, 4, ([0], 3), tasks)
+    assert sorted(picks) == [0, 3, 5, 7]  # task 0's four contexts, each once
+    picks = draw_contexts(torch.Generator().manual_seed(3), 8, 6, ([1, 2], 3), tasks)
+    assert [tasks[k] for k in picks] == [1, 2] * 3 and sorted(picks[0::2][:2]) == [1, 4] and len(set(picks[1::2][:2])) == 2
+    assert picks == draw_contexts(torch.Generator().manual_seed(3), 8, 6, ([1, 2], 3), tasks)
+    with pytest.raises(ValueError, match=r"no context of the task\(s\) at position\(s\) \[1\]"):
+        draw_contexts(torch.Generator(), 3, 2, ([1], 2), [0, 0, 0])
