@@ -18,6 +18,14 @@ and compares the two verdicts where it matters for ES:
 
     python -m analysis.imagined_ledger +task=libero_spatial --ledger results/rl_recipes/es_many_pairs_seed0_ledger \\
         --policy checkpoints/libero_spatial/sft --iterations 1 10 20 --json results/rl_recipes/imagined_ledger.json
+
+Where the verdict is faithful (from about a third of the way into a task), the question is asked of keyframes:
+`--episodes` (recorded episodes, e.g. demos or the policy's own rollouts) puts `--pairs` members drawn around
+`--policy` at `--frames` keyframes per episode at `--depth`, runs each for real from there (those real episodes
+are counted and printed) and in imagination, both for `--horizon` steps, and compares them the same way.
+
+    python -m analysis.imagined_ledger +task=libero_spatial --policy checkpoints/libero_spatial/sft \\
+        --episodes "data/libero_spatial/expert-*/task*/expert_000[0-1].mcap" --frames 1 --depth 0.34 0.67 --horizon 64
 """
 
 from __future__ import annotations
@@ -114,11 +122,93 @@ def line(name: str, r: dict) -> str:
             f"step cosine {r['step_cosine']:+.2f}{graded}")
 
 
+def compare(real: torch.Tensor, out: dict) -> dict:
+    """One iteration's row: the real outcomes against `es.imagined_member_outcomes`' (success and graded R)."""
+    d_real, d_reward = pair_differences(real), pair_differences(out["reward"])
+    return {**verdict_agreement(real, out["success"]), "imagined_reward": float(out["reward"].mean()),
+            "reward_step_cosine": cosine(d_real, d_reward), "reward_dot": float(d_real @ d_reward),
+            "reward_sq": float(d_reward @ d_reward), "imagined_steps": float(out["steps"].float().mean()),
+            "seconds": out["timing"]}
+
+
+def ledger_entries(args) -> list[dict]:
+    """--ledger's entries, the --iterations asked for checked against them (before any model is loaded)."""
+    from worldenv_core.rl import es
+
+    try:
+        entries = es.read_ledger(args.ledger)
+    except (OSError, ValueError, KeyError) as e:
+        raise ConfigError(f"--ledger {args.ledger}: {e}") from None
+    bad = [i for i in args.iterations or [] if not 1 <= i <= len(entries)]
+    if bad or not args.iterations:
+        raise ConfigError(f"--iterations {bad or 'missing'}: the ledger holds iterations 1-{len(entries)}")
+    return entries
+
+
+def ledger_rows(args, contract, env, camera, encoder) -> dict:
+    """--ledger: each named iteration's members around the policy its earlier steps made, at its placements."""
+    from worldenv_core.models.checkpoint import load_checkpoint
+    from worldenv_core.rl import es
+
+    entries = ledger_entries(args)
+    rows = {}
+    for it in sorted(set(args.iterations)):
+        e = entries[it - 1]
+        policy, _ = load_checkpoint(args.policy, "policy", contract, device="cpu")
+        es.replay_ledger(policy, entries, it - 1)  # the base the iteration's members were drawn around
+        members = es.antithetic_members(e["seeds"], e["es_sigma"])
+        out = es.imagined_member_outcomes(policy, env, placement_contexts(contract, e["contexts"], camera), members,
+                                          encoder, e["es_parameters"])
+        rows[it] = compare(torch.tensor(e["success"]), out)
+        print(line(f"iteration {it}", rows[it]), flush=True)
+    return rows
+
+
+def keyframe_rows(args, contract, env, camera, encoder) -> dict:
+    """--episodes: keyframes of recorded episodes (`rl.mid_episode_frames` at `rl.context_depth`) as the contexts,
+    `--pairs` antithetic members around the policy drawn here, each member's real outcome from each keyframe
+    collected (real episodes, counted) and its imagined one, both bounded by the imagined horizon."""
+    import glob
+
+    from stages.post_train_loop.training import contexts_from_episodes
+    from worldenv_core.models.checkpoint import load_checkpoint
+    from worldenv_core.rl import es
+    from worldenv_core.rl.real_rollouts import collect_member_outcomes
+
+    paths = sorted(Path(p) for pattern in args.episodes for p in glob.glob(pattern))
+    if not paths:
+        raise ConfigError(f"--episodes {args.episodes}: no recorded episode matches")
+    contexts, starts = contexts_from_episodes(paths, camera, args.frames, tuple(args.depth))
+    policy, _ = load_checkpoint(args.policy, "policy", contract, device="cpu")
+    g = torch.Generator().manual_seed(args.seed)
+    seeds = torch.randint(2**62, (args.pairs,), generator=g).tolist()
+    members = es.antithetic_members(seeds, args.sigma)
+    print(f"{len(contexts)} keyframes of {len(paths)} episodes, {len(members)} members, horizon {env.horizon}: "
+          f"{len(contexts) * len(members)} real episodes", flush=True)
+    real = collect_member_outcomes(args.policy, contract, starts, [c.instruction for c in contexts], members, encoder,
+                                   env.horizon, workers=args.workers, progress=True, journal=args.journal)
+    out = es.imagined_member_outcomes(policy, env, contexts, members, encoder)
+    row = {**compare(real["success"], out), "real_episodes": real["episodes"], "real_errors": real["errors"],
+           "keyframes": [st.key for st in starts]}
+    print(line("keyframes", row), flush=True)
+    return {"keyframes": row}
+
+
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--ledger", required=True, type=Path, help="a real-route ES ledger (iter_NNNN.json)")
     ap.add_argument("--policy", required=True, help="the run's starting policy (checkpoint folder)")
-    ap.add_argument("--iterations", type=int, nargs="+", required=True, help="ledger iterations to replay (from 1)")
+    source = ap.add_mutually_exclusive_group(required=True)
+    source.add_argument("--ledger", type=Path, help="a real-route ES ledger (iter_NNNN.json)")
+    source.add_argument("--episodes", nargs="+", help="recorded episodes (globs) whose keyframes are the contexts")
+    ap.add_argument("--iterations", type=int, nargs="+", help="with --ledger: its iterations to replay (from 1)")
+    ap.add_argument("--frames", type=int, default=2, help="with --episodes: keyframes per episode")
+    ap.add_argument("--depth", type=float, nargs=2, default=[1 / 3, 1.0], help="with --episodes: where they lie")
+    ap.add_argument("--horizon", type=int, help="imagined (and real) steps from a context (default: the task's)")
+    ap.add_argument("--pairs", type=int, default=32, help="with --episodes: antithetic pairs drawn")
+    ap.add_argument("--sigma", type=float, default=0.05, help="with --episodes: the members' relative size")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--journal", type=Path, help="with --episodes: keep finished real rollouts here (resume)")
     ap.add_argument("--worldsim", help="world-simulator checkpoint (default: checkpoints/<suite>/worldsim)")
     ap.add_argument("--reflector", help="reflector checkpoint (default: checkpoints/<suite>/reflector)")
     ap.add_argument("--eta", type=float, default=None, help="the verdict's threshold (default: the reflector's)")
@@ -126,22 +216,20 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("overrides", nargs="*", help="Hydra overrides naming the task (+task=...)")
     args = ap.parse_args(argv)
     with user_errors():
-        from worldenv_core.imagination.env import build_imagined_env
-        from worldenv_core.models.checkpoint import load_checkpoint
+        from worldenv_core.imagination.env import build_imagined_env, check_depth
         from worldenv_core.models.text import InstructionEncoder
-        from worldenv_core.rl import es
         from worldenv_core.rl.termination import reflector_eta
         from worldenv_core.stage import compose_config, task_contract
 
         cfg = compose_config("post_train_loop", ["scale=small", *args.overrides])
         contract = task_contract(cfg)
-        try:
-            entries = es.read_ledger(args.ledger)
-        except (OSError, ValueError, KeyError) as e:
-            raise ConfigError(f"--ledger {args.ledger}: {e}") from None
-        bad = [i for i in args.iterations if not 1 <= i <= len(entries)]
-        if bad:
-            raise ConfigError(f"--iterations {bad}: the ledger holds iterations 1-{len(entries)}")
+        if args.ledger:
+            ledger_entries(args)
+        else:
+            try:
+                check_depth(args.depth)
+            except ValueError as e:
+                raise ConfigError(f"--depth: {e}") from None
         worldsim = args.worldsim or f"checkpoints/{contract.suite}/worldsim"
         reflector = args.reflector or f"checkpoints/{contract.suite}/reflector"
         for what, path in (("--worldsim", worldsim), ("--reflector", reflector), ("--policy", args.policy)):
@@ -149,24 +237,11 @@ def main(argv: list[str] | None = None) -> dict:
                 raise ConfigError(f"{what} {path}: no model.safetensors there (a checkpoint folder is needed)")
         encoder = InstructionEncoder()
         env, camera = build_imagined_env(worldsim, reflector, reflector_eta(reflector, args.eta), encoder,
-                                         contract.max_steps, None, "cpu", contract)
-        rows = {}
-        for it in sorted(set(args.iterations)):
-            e = entries[it - 1]
-            policy, _ = load_checkpoint(args.policy, "policy", contract, device="cpu")
-            es.replay_ledger(policy, entries, it - 1)  # the base the iteration's members were drawn around
-            contexts = placement_contexts(contract, e["contexts"], camera)
-            members = es.antithetic_members(e["seeds"], e["es_sigma"])
-            out = es.imagined_member_outcomes(policy, env, contexts, members, encoder, e["es_parameters"])
-            real = torch.tensor(e["success"])
-            d_real, d_reward = pair_differences(real), pair_differences(out["reward"])
-            rows[it] = {**verdict_agreement(real, out["success"]), "imagined_reward": float(out["reward"].mean()),
-                        "reward_step_cosine": cosine(d_real, d_reward), "reward_dot": float(d_real @ d_reward),
-                        "reward_sq": float(d_reward @ d_reward),
-                        "imagined_steps": float(out["steps"].float().mean()), "seconds": out["timing"]}
-            print(line(f"iteration {it}", rows[it]), flush=True)
-        result = {"ledger": str(args.ledger), "policy": args.policy, "worldsim": worldsim, "reflector": reflector,
-                  "eta": env.eta, "iterations": rows, "pooled": pooled(list(rows.values()))}
+                                         args.horizon or contract.max_steps, None, "cpu", contract)
+        rows = (ledger_rows if args.ledger else keyframe_rows)(args, contract, env, camera, encoder)
+        result = {"ledger": str(args.ledger) if args.ledger else None, "episodes": args.episodes, "policy": args.policy,
+                  "worldsim": worldsim, "reflector": reflector, "eta": env.eta, "horizon": env.horizon,
+                  "iterations": rows, "pooled": pooled(list(rows.values()))}
         print(line("pooled", result["pooled"]))
         if args.json:
             write_text_atomic(args.json, json.dumps(result, indent=1))

@@ -52,3 +52,6 @@ def test_the_cli_names_an_iteration_the_ledger_does_not_hold(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["+task=tiny", "--ledger", str(ledger), "--policy", str(tmp_path), "--iterations", "2"])
     assert "the ledger holds iterations 1-1" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # keyframes: where they lie is checked before any model is loaded
+        main(["+task=tiny", "--episodes", "x.mcap", "--policy", str(tmp_path), "--depth", "0.6", "0.2"])
+    assert "--depth: a context depth [lo, hi] needs 0 <= lo < hi <= 1" in capsys.readouterr().err
