@@ -97,6 +97,7 @@ def recorded(experiment_dir: str, record_id: str | None, model_dir: str | None):
     """The train_worldsim record's config, its checkpoint (or `model_dir`) and held-out episodes."""
     manifest = Manifest(experiment_dir)
     record = manifest.get(record_id) if record_id else manifest.latest("train_worldsim")
+    cfg = OmegaConf.create(record.config)
     model, config = load_model(model_dir or manifest.resolve(record, kind="checkpoint")[0].parent)
     meta = config["meta"]
     paths = [p for rid in record.inputs for p in manifest.resolve(manifest.get(rid), kind="episodes")]
@@ -104,8 +105,8 @@ def recorded(experiment_dir: str, record_id: str | None, model_dir: str | None):
         keys = set(meta["held_out"])
         held = [p for p in paths if episode_key(p) in keys]
     else:
-        _, held = holdout_split(paths, OmegaConf.create(record.config).holdout_every)
-    return OmegaConf.create(record.config), model, meta, held
+        _, held = holdout_split(paths, cfg.holdout_every)
+    return cfg, model, meta, held
 
 
 def released(model_dir: str | None, data: str):

@@ -70,29 +70,29 @@ def pair_differences(returns: torch.Tensor) -> torch.Tensor:
 
 def cosine(a: torch.Tensor, b: torch.Tensor) -> float:
     """NaN where either side has no step (every pair level)."""
-    n = float(a.norm() * b.norm())
-    return float(a @ b) / n if n > 0 else float("nan")
+    return cosine_of(float(a @ b), float(a @ a), float(b @ b))
+
+
+def cosine_of(dot: float, sq_a: float, sq_b: float) -> float:
+    """The cosine from a dot product and both squared norms (sums of them pool iterations); NaN without a step."""
+    return dot / (sq_a * sq_b) ** 0.5 if sq_a * sq_b > 0 else float("nan")
 
 
 def pooled(rows: list[dict]) -> dict:
     """The iterations together: the step cosine pooled as `es.half_agreement` pools its halves, rates over episodes."""
-    n = sum(r["episodes"] for r in rows)
-    sq = sum(r["real_sq"] for r in rows) * sum(r["imagined_sq"] for r in rows)
+    n, real_sq = sum(r["episodes"] for r in rows), sum(r["real_sq"] for r in rows)
     imagined, real = sum(r["imagined_successes"] for r in rows), sum(r["real_successes"] for r in rows)
     hits = sum(r["both_succeed"] for r in rows)
     return {"iterations": len(rows), "episodes": n, "real_success": real / n, "imagined_success": imagined / n,
             "agreement": sum(r["agreement"] * r["episodes"] for r in rows) / n,
             "hack_rate": 1 - hits / imagined if imagined else float("nan"),
             "recall": hits / real if real else float("nan"),
-            "step_cosine": sum(r["dot"] for r in rows) / sq ** 0.5 if sq > 0 else float("nan"),
-            **({"reward_step_cosine": cosine_of(sum(r["reward_dot"] for r in rows), sum(r["real_sq"] for r in rows),
+            "step_cosine": cosine_of(sum(r["dot"] for r in rows), real_sq, sum(r["imagined_sq"] for r in rows)),
+            **({"reward_step_cosine": cosine_of(sum(r["reward_dot"] for r in rows), real_sq,
                                                 sum(r["reward_sq"] for r in rows)),
                 "imagined_reward": sum(r["imagined_reward"] * r["episodes"] for r in rows) / n}
                if all("reward_dot" in r for r in rows) else {})}
 
-
-def cosine_of(dot: float, sq_a: float, sq_b: float) -> float:
-    return dot / (sq_a * sq_b) ** 0.5 if sq_a * sq_b > 0 else float("nan")
 
 
 def placement_contexts(contract, numbers: list[int], camera: str) -> list:
@@ -145,12 +145,11 @@ def ledger_entries(args) -> list[dict]:
     return entries
 
 
-def ledger_rows(args, contract, env, camera, encoder) -> dict:
+def ledger_rows(args, entries: list[dict], contract, env, camera, encoder) -> dict:
     """--ledger: each named iteration's members around the policy its earlier steps made, at its placements."""
     from worldenv_core.models.checkpoint import load_checkpoint
     from worldenv_core.rl import es
 
-    entries = ledger_entries(args)
     rows = {}
     for it in sorted(set(args.iterations)):
         e = entries[it - 1]
@@ -223,9 +222,8 @@ def main(argv: list[str] | None = None) -> dict:
 
         cfg = compose_config("post_train_loop", ["scale=small", *args.overrides])
         contract = task_contract(cfg)
-        if args.ledger:
-            ledger_entries(args)
-        else:
+        entries = ledger_entries(args) if args.ledger else None
+        if not args.ledger:
             try:
                 check_depth(args.depth)
             except ValueError as e:
@@ -238,7 +236,8 @@ def main(argv: list[str] | None = None) -> dict:
         encoder = InstructionEncoder()
         env, camera = build_imagined_env(worldsim, reflector, reflector_eta(reflector, args.eta), encoder,
                                          args.horizon or contract.max_steps, None, "cpu", contract)
-        rows = (ledger_rows if args.ledger else keyframe_rows)(args, contract, env, camera, encoder)
+        rows = (ledger_rows(args, entries, contract, env, camera, encoder) if args.ledger else
+                keyframe_rows(args, contract, env, camera, encoder))
         result = {"ledger": str(args.ledger) if args.ledger else None, "episodes": args.episodes, "policy": args.policy,
                   "worldsim": worldsim, "reflector": reflector, "eta": env.eta, "horizon": env.horizon,
                   "iterations": rows, "pooled": pooled(list(rows.values()))}
