@@ -179,3 +179,33 @@ def test_an_es_journals_outcomes_travel_as_json_and_are_taken_back_by_the_same_j
         next(moved.parameters()).add_(1.0)
     other = save_model(tmp_path / "other", moved, POLICY_CONFIG, {"kind": "policy"})
     assert RolloutJournal(tmp_path / "elsewhere", other).get(member) is None  # another behaviour: its folder retired
+
+
+def test_jobs_over_several_tasks_run_one_task_after_another_and_come_back_in_index_order(tmp_path, monkeypatch):
+    """ES members over starts of several tasks are indexed member-major, so in index order a worker's consecutive
+    jobs cycle through the tasks (an env and a scene rebuilt for each). The journal's jobs still to run go out grouped
+    by task, in index order within one, the finished one is not run again, and the results return in index order."""
+    import worldenv_core.parallel as parallel
+    from worldenv_core.rl.real_rollouts import RealRolloutJob, RolloutJournal, run_journaled
+
+    saved = save_model(tmp_path / "behaviour", tiny_policy(), POLICY_CONFIG, {"kind": "policy"})
+    lang = np.zeros(16, dtype=np.float32)
+    starts = [RealStart(task_id=t, seed=s) for t, s in ((2, 11), (0, 12), (1, 13))]
+    jobs = [RealRolloutJob(None, starts[c], str(saved), 0, lang, 16, 0.0, index=m * 3 + c, perturbation=(m, 0.05),
+                           keep_frames=False) for m in range(3) for c in range(3)]
+
+    def outcome(job):
+        return {"index": job.index, "start": job.start, "seed": 0, "frames": [], "proprio": [], "actions": [],
+                "executed": [16], "first_success": None, "error": None, "seconds": {"total": 0.0}, "steps": 16}
+
+    RolloutJournal(tmp_path / "journal", saved).add(jobs[4], outcome(jobs[4]))
+    sent = []
+
+    def run_jobs(fn, todo, **kwargs):
+        sent.extend(j.index for j in todo)
+        return (outcome(j) for j in reversed(todo))  # completion order is any order
+
+    monkeypatch.setattr(parallel, "run_jobs", run_jobs)
+    runs = run_journaled(jobs, saved, tmp_path / "journal")
+    assert sent == [1, 7, 2, 5, 8, 0, 3, 6]  # task 0, task 1 (job 4 came from the journal), task 2
+    assert [r["index"] for r in runs] == list(range(9))
