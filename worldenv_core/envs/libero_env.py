@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from worldenv_core.envs.scenes import Scene, snapshot
+from worldenv_core.envs.scenes import Moment, Scene, back_to, moment, snapshot
 from worldenv_core.envs.scenes import restore as restore_scene
 from worldenv_core.envs.tasks import TaskSpec, get_task, init_states
 from worldenv_core.robot import ACTION_DIM, gripper_opening
@@ -117,6 +117,8 @@ class LiberoEnv:
         self._property_samplers = len(getattr(self._env.env, "object_property_initializers", []))
         self._scenes: OrderedDict[int, Scene] = OrderedDict()  # fresh placements' scenes, by seed
         self._scene_cache = int(scene_cache)
+        self._moments: OrderedDict[str, tuple[Moment, object]] = OrderedDict()  # points inside episodes (`keep_moment`), by key
+        self._seed = 0  # the last reset's: a kept moment's scene is redrawn from it
 
     # -- properties -------------------------------------------------------------------------
     @property
@@ -145,7 +147,7 @@ class LiberoEnv:
         (cabinets, stoves: model.body_pos) and the arm's start from numpy's global RNG, and an init state restores
         only qpos/qvel, so an unseeded reset is not reproducible. `seed=None` means seed 0. With a
         `scene_cache`, a placement seen before is put back from its kept scene (bit for bit the same)."""
-        seed = int(seed) if seed is not None else 0
+        seed = self._seed = int(seed) if seed is not None else 0
         # fresh placements only: a benchmark init state set over a sampled reset came back ~1e-17 apart after a
         # step (MuJoCo's solver scratch differs between a reused and a new MjData), and each is reset once anyway
         key = seed if self._scene_cache and init_state is None else None
@@ -171,6 +173,24 @@ class LiberoEnv:
             while len(self._scenes) > self._scene_cache:
                 self._scenes.popitem(last=False)
         return self.observe()
+
+    def keep_moment(self, key: str, info=None) -> None:
+        """Keep the point this env is at under `key` (with a `scene_cache`, as many of the recent ones): a keyframe the
+        real route starts from again (ES members from the same recorded frame) comes back with `back_to` in ~0.1 s
+        instead of a reset and the recorded actions replayed to it (4-6 s at mid-task). `info` comes back with it."""
+        if self._scene_cache:
+            self._moments[key] = moment(self._env, self._obs, self._seed), info
+            while len(self._moments) > self._scene_cache:
+                self._moments.popitem(last=False)
+
+    def back_to(self, key: str) -> tuple[Frame, object] | None:
+        """The env put back at the point kept under `key` (`keep_moment`) and its `info`, or None where none is kept."""
+        if key not in self._moments:
+            return None
+        self._moments.move_to_end(key)
+        kept, info = self._moments[key]
+        self._obs = back_to(self._env, kept)
+        return self.observe(), info
 
     def step(self, action: np.ndarray) -> Frame:
         action = np.asarray(action, dtype=np.float64)

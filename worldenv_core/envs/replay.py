@@ -111,11 +111,29 @@ def unreplayable(contract: TaskContract, starts: list[RealStart], **run_kw) -> d
 
 def restore(env: LiberoEnv, start: RealStart, tolerance: float = 1e-3) -> Frame:
     """Put `env` at the context's start and return that frame (no images). A fresh placement is
-    checked against the benchmark's init states (`placements.BenchmarkOverlap` if it is one)."""
+    checked against the benchmark's init states (`placements.BenchmarkOverlap` if it is one). A recorded frame is
+    replayed to once per env and kept (`LiberoEnv.keep_moment`, with a `scene_cache`): ES members meet each keyframe
+    once per member, and the replay (4-6 s at mid-task) was most of a 16-step rollout's time."""
     if start.placement:
         return reset_placement(env, start.seed)
     if start.episode is None:
         return env.reset(init_state=start.init_state, seed=start.seed)
+    kept = env.back_to(start.key) if start.frame else None  # a keyframe this env replayed to before
+    if kept is not None:
+        frame, gap = kept
+    else:
+        frame, gap = _replay_to(env, start)
+        if start.frame:
+            env.keep_moment(start.key, gap)
+    if gap > tolerance:
+        raise ReplayError(f"replaying {start.episode} to frame {start.frame} ends {gap:.3g} away from the "
+                          f"recorded state (tolerance {tolerance})")
+    return frame
+
+
+def _replay_to(env: LiberoEnv, start: RealStart) -> tuple[Frame, float]:
+    """The recorded episode's scene reset, its first state set and its actions replayed to `start.frame`. -> that
+    frame and its distance from the recorded state there."""
     from worldenv_core.data.mcap_io import read_episode
 
     ep = read_episode(start.episode, cameras=[])
@@ -123,12 +141,8 @@ def restore(env: LiberoEnv, start: RealStart, tolerance: float = 1e-3) -> Frame:
     env.set_sim_state(ep.sim_state[0])
     for a in ep.actions[:start.frame]:
         frame = env.step(a)
-    if start.frame and ep.sim_state.shape[1]:
-        gap = float(np.abs(frame.sim_state - ep.sim_state[start.frame]).max())
-        if gap > tolerance:
-            raise ReplayError(f"replaying {start.episode} to frame {start.frame} ends {gap:.3g} away from the "
-                              f"recorded state (tolerance {tolerance})")
-    return frame
+    gap = float(np.abs(frame.sim_state - ep.sim_state[start.frame]).max()) if start.frame and ep.sim_state.shape[1] else 0.0
+    return frame, gap
 
 
 def execute(env: LiberoEnv, start: RealStart, actions: np.ndarray, every: int, camera: str,

@@ -45,9 +45,31 @@ def test_other_actions_change_the_outcome_and_a_wrong_prefix_is_caught(demo, con
     idle[:, 6] = -1.0
     out = execute(env, start, idle, every=c.chunk, camera="agentview", keep=frozenset({8}))
     assert not out["success"] and out["first_success"] is None and set(out["frames"]) == {8}
-    # a replay that ends away from the recorded state is an error, never a silent mismatch
+    # a replay that ends away from the recorded state is an error, never a silent mismatch (frame 10 is now kept:
+    # the gap measured when it was replayed is checked again)
     with pytest.raises(ReplayError, match="away from the recorded state"):
         restore(env, RealStart(task_id=ep.meta.task_id, seed=ep.meta.seed, episode=str(path), frame=10), tolerance=-1)
+
+
+def test_a_keyframe_met_again_is_put_back_without_replaying_and_leads_where_the_replay_did(demo, contract,
+                                                                                           monkeypatch):
+    """ES members start from the same keyframe one after another: the env replays the recorded actions to it once,
+    then puts the kept point back (no episode read, no steps), and the recorded actions from there reach the same
+    outcome and frames."""
+    import worldenv_core.data.mcap_io as mcap_io
+
+    path, ep = demo
+    c = contract()
+    env = cached_env(c.suite, ep.meta.task_id, c.cameras, c.image_size)
+    start = RealStart(task_id=ep.meta.task_id, seed=ep.meta.seed, episode=str(path), frame=13)
+    first = execute(env, start, ep.actions[13:], every=c.chunk, camera="agentview")
+    reads = []
+    monkeypatch.setattr(mcap_io, "read_episode", lambda *a, **k: reads.append(a) or ep)
+    again = execute(env, start, ep.actions[13:], every=c.chunk, camera="agentview")
+    assert reads == []  # put back, not replayed
+    assert again["first_success"] == first["first_success"] == int(np.flatnonzero(ep.success)[0]) - 13
+    for t, img in first["frames"].items():
+        assert np.abs(img.astype(int) - again["frames"][t]).max() <= 1, f"frame {t} differs"
 
 
 def test_a_replay_job_returns_one_real_outcome_per_action_sequence(demo, contract):
