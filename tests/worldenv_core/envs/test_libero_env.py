@@ -130,3 +130,45 @@ def test_an_env_renders_its_own_scene_after_other_envs_are_built_reset_and_close
     assert np.array_equal(look(other), other_before)
     assert np.array_equal(look(tiny_env), before)
     other.close()
+
+
+def test_one_forward_per_substep_leaves_every_step_bit_for_bit_the_same(monkeypatch):
+    """`forward_once` drops the arm controller's second mj_forward of each physics substep: over 60 steps (the
+    gripper closing and opening, a reset between, which builds new controllers) the states, proprioception,
+    success and the final render equal those of robosuite's own loop, with half the mj_forward calls."""
+    import mujoco
+
+    import worldenv_core.envs.libero_env as libero_env
+    from worldenv_core.envs.libero_env import LiberoEnv
+
+    actions = np.random.default_rng(3).uniform(-0.6, 0.6, (60, 7))
+    actions[:, 6] = np.sign(actions[:, 6])
+    calls = [0]
+    forward = mujoco.mj_forward
+
+    def counted(*args):
+        calls[0] += 1
+        return forward(*args)
+
+    monkeypatch.setattr(mujoco, "mj_forward", counted)
+    runs = {}
+    for name in ("robosuite", "once"):
+        if name == "robosuite":
+            monkeypatch.setattr(libero_env, "forward_once", lambda raw, stepping: None)
+        else:
+            monkeypatch.undo()
+            monkeypatch.setattr(mujoco, "mj_forward", counted)
+        env = LiberoEnv("libero_spatial", 4, cameras=("agentview",), image_size=64)
+        frames = []
+        for seed, part in ((7, actions[:30]), (8, actions[30:])):
+            env.reset(seed=seed)
+            before = calls[0]
+            frames += [env.step(a) for a in part]
+            steps_calls = calls[0] - before
+        runs[name] = (frames, env.render()["agentview"], steps_calls)
+        env.close()
+    (a, render_a, calls_a), (b, render_b, calls_b) = runs["robosuite"], runs["once"]
+    assert all(np.array_equal(x.sim_state, y.sim_state) and np.array_equal(x.proprio, y.proprio)
+               and x.success == y.success for x, y in zip(a, b))
+    assert np.array_equal(render_a, render_b)
+    assert calls_b == len(actions[30:]) * 25 and calls_a >= 2 * calls_b - 1  # one per substep, after a reset too
