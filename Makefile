@@ -12,7 +12,7 @@ export MUJOCO_GL ?= egl
 export HF_HUB_OFFLINE := 1
 export TOKENIZERS_PARALLELISM := false
 
-.PHONY: setup test test-fast faults smoke pipeline refit rl-real suites suites-table suites-pro eval-release research-checkpoints fidelity bench cost-model expert-table tensorboard clean
+.PHONY: setup test test-fast faults smoke pipeline refit rl-real rl-figures suites suites-table suites-pro eval-release research-checkpoints fidelity bench cost-model expert-table tensorboard clean
 
 setup: $(STAMP)
 
@@ -162,6 +162,28 @@ rl-real: setup
 	$(PY) -m stages.post_train_loop +task=$(TASK) scale=$(SCALE) experiment_dir=$(EXP) env=real rl=$(RECIPE) \
 	  policy_from=checkpoints/$(TASK)/sft rl.iterations=$(RL_ITERATIONS) eval.every=$(EVAL_EVERY) eval.init_states=0 \
 	  eval.validation=100 eval.workers=2 seed=$(SEED) $(RL_ARGS)
+
+# The real-route campaign's figures and tables from what the repository keeps (ledgers under results/rl_recipes/,
+# evaluations under results/libero_spatial/): no simulator, a minute. docs/results.md shows them.
+R := results/libero_spatial
+SFT_SPATIAL := $(R)/evaluate-021c9f3e0a3b $(R)/evaluate-56b93ed13412 $(R)/evaluate-af65e977e8f9 $(R)/evaluate-6d17c27737c4
+ES_BUDGET := --policy "LOOP (PPO), real simulator" 1280 $(R)/evaluate-d9a6ed3eb608 \
+  --policy "ES one task per iteration" 1280 $(R)/evaluate-213421144515 \
+  --policy "ES one task per iteration" 2560 $(R)/evaluate-a1679beabb59 \
+  --policy "ES one task per iteration" 5120 $(R)/evaluate-87ee37bbd5f8 \
+  --policy "ES 32 pairs on 4 starts, seed 0" 2560 $(R)/evaluate-6a0a84546fe6 \
+  --policy "ES 32 pairs on 4 starts, seed 0" 5120 $(R)/evaluate-58f66194214b \
+  --policy "random move, the real route's size" 0 $(R)/evaluate-770e1227729b \
+  --policy "random move, ES one task's size" 0 $(R)/evaluate-ac139645c064 \
+  --policy "random move, ES 32 pairs' size" 0 $(R)/evaluate-6577d5ecd3d8 \
+  --policy "random move, ES 32 pairs' size" 0 $(R)/evaluate-1b9385e7fb20 \
+  --policy "random move, ES 32 pairs' size" 0 $(R)/evaluate-4cc15e642a96
+ES_RUNS := es_by_task_seed0 es_suite_seed0 es_task4_seed0 es_every_task_seed0 es_many_pairs_seed0 es_many_pairs_seed1
+rl-figures: setup
+	$(PY) -m analysis.budget - --start $(SFT_SPATIAL) $(ES_BUDGET) --json results/rl_recipes/budget_libero_spatial_es.json \
+	  --plot docs/img/budget_libero_spatial_es.png --tasks-plot docs/img/tasks_libero_spatial_es.png
+	$(PY) -m analysis.rl_curves $(foreach r,$(ES_RUNS),--run $(r)=results/rl_recipes/$(r)_ledger) \
+	  --json results/rl_recipes --figure docs/img/rl_curves_es.png --markdown results/rl_recipes/curves_es.md
 
 # The same pipeline on the tiny task and scale: minutes, proves the plumbing.
 smoke:

@@ -19,6 +19,7 @@ import numpy as np
 
 from worldenv_core.envs.scenes import Moment, Scene, back_to, moment, snapshot
 from worldenv_core.envs.scenes import restore as restore_scene
+from worldenv_core.envs.substeps import SplitSubsteps
 from worldenv_core.envs.tasks import TaskSpec, get_task, init_states
 from worldenv_core.robot import ACTION_DIM, gripper_opening
 
@@ -119,7 +120,6 @@ class LiberoEnv:
         self._scene_cache = int(scene_cache)
         self._moments: OrderedDict[str, tuple[Moment, object]] = OrderedDict()  # points inside episodes (`keep_moment`), by key
         self._seed = 0  # the last reset's: a kept moment's scene is redrawn from it
-        self._stepping = [False]  # inside `step` (`forward_once`)
 
     # -- properties -------------------------------------------------------------------------
     @property
@@ -199,12 +199,8 @@ class LiberoEnv:
             raise ValueError(f"action must have shape ({ACTION_DIM},), got {action.shape}")
         if not np.all(np.isfinite(action)):
             raise ValueError(f"action has non-finite entries: {action}")
-        forward_once(self._env.env, self._stepping)
-        self._stepping[0] = True
-        try:
+        with SplitSubsteps(self._env.env):  # one pass of MuJoCo's stages per physics substep (substeps.py)
             self._obs, _, _, _ = self._env.step(np.clip(action, -1.0, 1.0))
-        finally:
-            self._stepping[0] = False
         frame = self.observe()
         if not np.all(np.isfinite(frame.sim_state)):
             raise SimulationError(f"non-finite MuJoCo state in {self.task.name}")
@@ -280,33 +276,3 @@ class LiberoEnv:
 
     def __exit__(self, *exc):
         self.close()
-
-
-def _no_forward() -> None:
-    return None
-
-
-def forward_once(raw, stepping: list[bool]) -> None:
-    """One mj_forward per physics substep instead of two. robosuite's step loop calls `sim.forward()` and then, in
-    the same substep with nothing changed in between, the arm controller's `update()` calls it again (its mass
-    matrix and Jacobians from the state the first call just synchronised): a third of a step's physics time
-    (a libero_spatial step: 25 substeps of one mj_step and two mj_forward). While `stepping[0]` is set the
-    controllers' update skips its call; the trajectories, proprioception and renders are bit for bit the same
-    (`tests/worldenv_core/envs/test_libero_env.py`). Outside `step` (resets, scenes put back) the controller
-    forwards as before. A reset builds new controllers, so each step wraps the ones it finds unwrapped."""
-    for robot in raw.robots:
-        controller = robot.controller
-        if getattr(controller, "_forward_once", False):
-            continue
-        update, sim = controller.update, controller.sim
-
-        def once(force=False, _update=update, _sim=sim):
-            if not stepping[0]:
-                return _update(force)
-            _sim.forward = _no_forward  # shadows the method for this call only
-            try:
-                return _update(force)
-            finally:
-                del _sim.forward
-        controller.update, controller._forward_once = once, True
-
