@@ -171,8 +171,11 @@ ES_BUDGET := --policy "LOOP (PPO), real simulator" 1280 $(R)/evaluate-d9a6ed3eb6
   --policy "ES one task per iteration" 1280 $(R)/evaluate-213421144515 \
   --policy "ES one task per iteration" 2560 $(R)/evaluate-a1679beabb59 \
   --policy "ES one task per iteration" 5120 $(R)/evaluate-87ee37bbd5f8 \
+  --policy "ES 32 pairs on 4 starts, seed 0" 1280 $(R)/evaluate-738d309c6db6 \
   --policy "ES 32 pairs on 4 starts, seed 0" 2560 $(R)/evaluate-6a0a84546fe6 \
   --policy "ES 32 pairs on 4 starts, seed 0" 5120 $(R)/evaluate-58f66194214b \
+  --policy "ES 32 pairs on 4 starts, seed 1" 2560 $(R)/evaluate-07ebdb4d1bb3 \
+  --policy "ES 32 pairs on 4 starts, seed 1" 5120 $(R)/evaluate-73403c6f62a8 \
   --policy "random move, the real route's size" 0 $(R)/evaluate-770e1227729b \
   --policy "random move, ES one task's size" 0 $(R)/evaluate-ac139645c064 \
   --policy "random move, ES 32 pairs' size" 0 $(R)/evaluate-6577d5ecd3d8 \
