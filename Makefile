@@ -165,22 +165,22 @@ rl-real: setup
 
 # The real-route campaign's figures and tables from what the repository keeps (ledgers under results/rl_recipes/,
 # evaluations under results/libero_spatial/): no simulator, a minute. docs/results.md shows them.
-R := results/libero_spatial
-SFT_SPATIAL := $(R)/evaluate-021c9f3e0a3b $(R)/evaluate-56b93ed13412 $(R)/evaluate-af65e977e8f9 $(R)/evaluate-6d17c27737c4
-ES_BUDGET := --policy "LOOP (PPO), real simulator" 1280 $(R)/evaluate-d9a6ed3eb608 \
-  --policy "ES one task per iteration" 1280 $(R)/evaluate-213421144515 \
-  --policy "ES one task per iteration" 2560 $(R)/evaluate-a1679beabb59 \
-  --policy "ES one task per iteration" 5120 $(R)/evaluate-87ee37bbd5f8 \
-  --policy "ES 32 pairs on 4 starts, seed 0" 1280 $(R)/evaluate-738d309c6db6 \
-  --policy "ES 32 pairs on 4 starts, seed 0" 2560 $(R)/evaluate-6a0a84546fe6 \
-  --policy "ES 32 pairs on 4 starts, seed 0" 5120 $(R)/evaluate-58f66194214b \
-  --policy "ES 32 pairs on 4 starts, seed 1" 2560 $(R)/evaluate-07ebdb4d1bb3 \
-  --policy "ES 32 pairs on 4 starts, seed 1" 5120 $(R)/evaluate-73403c6f62a8 \
-  --policy "random move, the real route's size" 0 $(R)/evaluate-770e1227729b \
-  --policy "random move, ES one task's size" 0 $(R)/evaluate-ac139645c064 \
-  --policy "random move, ES 32 pairs' size" 0 $(R)/evaluate-6577d5ecd3d8 \
-  --policy "random move, ES 32 pairs' size" 0 $(R)/evaluate-1b9385e7fb20 \
-  --policy "random move, ES 32 pairs' size" 0 $(R)/evaluate-4cc15e642a96
+SPATIAL_KEPT := results/libero_spatial
+SFT_SPATIAL := $(SPATIAL_KEPT)/evaluate-021c9f3e0a3b $(SPATIAL_KEPT)/evaluate-56b93ed13412 $(SPATIAL_KEPT)/evaluate-af65e977e8f9 $(SPATIAL_KEPT)/evaluate-6d17c27737c4
+ES_BUDGET := --policy "LOOP (PPO), real simulator" 1280 $(SPATIAL_KEPT)/evaluate-d9a6ed3eb608 \
+  --policy "ES one task per iteration" 1280 $(SPATIAL_KEPT)/evaluate-213421144515 \
+  --policy "ES one task per iteration" 2560 $(SPATIAL_KEPT)/evaluate-a1679beabb59 \
+  --policy "ES one task per iteration" 5120 $(SPATIAL_KEPT)/evaluate-87ee37bbd5f8 \
+  --policy "ES 32 pairs on 4 starts, seed 0" 1280 $(SPATIAL_KEPT)/evaluate-738d309c6db6 \
+  --policy "ES 32 pairs on 4 starts, seed 0" 2560 $(SPATIAL_KEPT)/evaluate-6a0a84546fe6 \
+  --policy "ES 32 pairs on 4 starts, seed 0" 5120 $(SPATIAL_KEPT)/evaluate-58f66194214b \
+  --policy "ES 32 pairs on 4 starts, seed 1" 2560 $(SPATIAL_KEPT)/evaluate-07ebdb4d1bb3 \
+  --policy "ES 32 pairs on 4 starts, seed 1" 5120 $(SPATIAL_KEPT)/evaluate-73403c6f62a8 \
+  --policy "random move, the real route's size" 0 $(SPATIAL_KEPT)/evaluate-770e1227729b \
+  --policy "random move, ES one task's size" 0 $(SPATIAL_KEPT)/evaluate-ac139645c064 \
+  --policy "random move, ES 32 pairs' size" 0 $(SPATIAL_KEPT)/evaluate-6577d5ecd3d8 \
+  --policy "random move, ES 32 pairs' size" 0 $(SPATIAL_KEPT)/evaluate-1b9385e7fb20 \
+  --policy "random move, ES 32 pairs' size" 0 $(SPATIAL_KEPT)/evaluate-4cc15e642a96
 ES_RUNS := es_by_task_seed0 es_suite_seed0 es_task4_seed0 es_every_task_seed0 es_many_pairs_seed0 es_many_pairs_seed1
 rl-figures: setup
 	$(PY) -m analysis.budget - --start $(SFT_SPATIAL) $(ES_BUDGET) --json results/rl_recipes/budget_libero_spatial_es.json \

@@ -10,7 +10,7 @@ the control in between. Inside `LiberoEnv.step` the first forward of a substep i
 does nothing, and the step is mj_step2: the same stages on the same inputs in the same order (the constraint
 solver's warm start is saved only when a step integrates), so states, observations and renders are bit for bit
 robosuite's own loop (`tests/worldenv_core/envs/test_substeps.py`), with one pass of the stages per substep where
-there were three. MuJoCo's Euler integrator only: RK4 runs its own stages (refused below).
+there were three. Euler and implicit integrators only: RK4 runs its own stages (refused below).
 """
 
 from __future__ import annotations
