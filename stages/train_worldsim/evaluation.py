@@ -74,8 +74,8 @@ def evaluate_fidelity(cfg, model, kinematics, cameras, held_eps, work: Path, bas
     for name, other, gate in extra:
         theirs, _ = fidelity_by_horizon(cfg, other.eval(), kinematics, cameras, held_eps, gate)
         for h, v in fidelity.items():
-            v.update({f"{name}_psnr": theirs[h]["model_psnr"], f"{name}_ssim": theirs[h]["model_ssim"],
-                      f"{name}_ssim_moving": theirs[h]["model_ssim_moving"]})
+            v.update({f"{name}_{key}": theirs[h][f"model_{key}"] for key in
+                      ("psnr", "ssim", "ssim_moving", "ssim_gripper", "psnr_gripper") if f"model_{key}" in theirs[h]})
     kin = {f"kinematics_{h}step": state_errors(kinematics, held_eps, h) for h in (1, cfg.task.chunk)}
     (work / "videos").mkdir(exist_ok=True)
     for i, (real, fake) in enumerate(videos[: cfg.fidelity.videos]):
@@ -90,14 +90,14 @@ def evaluate_fidelity(cfg, model, kinematics, cameras, held_eps, work: Path, bas
     md = markdown_table(["horizon (steps)", "PSNR model", "PSNR copy-last", "SSIM model", "SSIM copy-last",
                          "PSNR / SSIM plain decoding", "PSNR / SSIM / SSIM moving: starting model",
                          "SSIM static: model / copy", "SSIM moving: model / copy", "moving share",
-                         "gripper SSIM: model / copy", "gripper PSNR: model / copy", "n"],
+                         "gripper SSIM: model / copy / start", "gripper PSNR: model / copy / start", "n"],
                         [[h, f"{v['model_psnr']:.2f}", f"{v['copy_psnr']:.2f}", f"{v['model_ssim']:.3f}",
                           f"{v['copy_ssim']:.3f}", f"{fmt(v, 'plain_psnr')} / {fmt(v, 'plain_ssim')}",
                           f"{fmt(v, 'start_psnr')} / {fmt(v, 'start_ssim')} / {fmt(v, 'start_ssim_moving')}",
                           f"{v['model_ssim_static']:.3f} / {v['copy_ssim_static']:.3f}",
                           f"{v['model_ssim_moving']:.3f} / {v['copy_ssim_moving']:.3f}", f"{v['moving_fraction']:.2f}",
-                          f"{fmt(v, 'model_ssim_gripper')} / {fmt(v, 'copy_ssim_gripper')}",
-                          f"{fmt(v, 'model_psnr_gripper')} / {fmt(v, 'copy_psnr_gripper')}",
+                          f"{fmt(v, 'model_ssim_gripper')} / {fmt(v, 'copy_ssim_gripper')} / {fmt(v, 'start_ssim_gripper')}",
+                          f"{fmt(v, 'model_psnr_gripper')} / {fmt(v, 'copy_psnr_gripper')} / {fmt(v, 'start_psnr_gripper')}",
                           v["n"]] for h, v in sorted(fidelity.items())])
     md += ["", *markdown_table(["kinematics", "pos median (mm)", "pos p90 (mm)", "rot median (deg)", "gripper MAE"],
                                [[f"{v['horizon']} step(s)", f"{v['pos_mm_median']:.2f}", f"{v['pos_mm_p90']:.2f}",

@@ -24,8 +24,8 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from stages.train_worldsim.evaluation import evaluate_fidelity, write_replays
-from stages.train_worldsim.training import (ae_phase, episode_chunks, flow_phase, fresh_velocity, rollout_phase,
-                                            snapshots)
+from stages.train_worldsim.training import (ae_phase, episode_chunks, flow_phase, fresh_velocity, refine_phase,
+                                            rollout_phase, snapshots, with_refiner)
 from worldenv_core.contract import TaskContract
 from worldenv_core.data.selection import POLICY_COLLECTIONS, collected_episodes, episode_key, load_split
 from worldenv_core.kinematics.camera import PinholeCamera
@@ -44,7 +44,8 @@ BATCHES = ("ae.batch_size", "flow.batch_size", "rollout.batch_size")
 ON_A_MODEL = ("latents_to", "latents_from", "fresh_width", "minutes")  # settings that go on from init_from's model
 # settings added after runs were made: at these values a run keeps its record's settings hash and work dir
 LATER_DEFAULTS = {"latents_to": None, "latents_from": None, "latents_every": 1, "fresh_width": None, "minutes": None,
-                  "snapshots": 1, "policy_collections": "latest"}
+                  "snapshots": 1, "policy_collections": "latest",
+                  "refine": {"steps": 0, "chunks": 3, "batch_size": 8, "lr": 1e-3, "arm_weight": 4.0, "width": 32}}
 
 
 def validate(cfg: DictConfig) -> None:
@@ -56,14 +57,27 @@ def validate(cfg: DictConfig) -> None:
     positive_int(cfg, "rollout.chunks", allow_zero=True)  # 0: teacher-forced, e.g. a fresh flow network first
     one_of(cfg, "policy_collections", POLICY_COLLECTIONS)
     positive_int(cfg, "rollout.batch_size")
+    for key in ("refine.steps", "refine.chunks"):
+        positive_int(cfg, key, allow_zero=True)
+    for key in ("refine.batch_size", "refine.width"):
+        positive_int(cfg, key)
+    if cfg.refine.arm_weight < 0:
+        raise ConfigError(f"refine.arm_weight must be >= 0, got {cfg.refine.arm_weight}")
+    if cfg.refine.steps and not cfg.init_from:
+        raise ConfigError("refine.steps trains the arm refiner on a trained model's imagined frames: "
+                          "give init_from=<record or folder>")
+    if cfg.refine.steps and cfg.latents_from:
+        raise ConfigError("refine.steps learns from the real frames, which a latent pack does not hold: "
+                          "run it where the episodes are")
     trainer_options(cfg, *BATCHES)
     given = [k for k in ON_A_MODEL if cfg.get(k) is not None]
     if given and not cfg.init_from:
         raise ConfigError(f"{given[0]} goes on from a trained model (its autoencoder): give init_from=<record or folder>")
     if cfg.snapshots > 1 and not cfg.init_from:
         raise ConfigError("snapshots keeps the model at fractions of the open-loop phase: give init_from=<record or folder>")
-    if cfg.init_from and not (cfg.rollout.steps or cfg.minutes or cfg.latents_to):
-        raise ConfigError("init_from trains the open-loop phase only: give it rollout.steps > 0 (or minutes=)")
+    if cfg.init_from and not (cfg.rollout.steps or cfg.refine.steps or cfg.minutes or cfg.latents_to):
+        raise ConfigError("init_from trains the open-loop phase or the arm refiner: give it rollout.steps > 0 "
+                          "(or minutes=) or refine.steps > 0")
     if cfg.latents_to and cfg.latents_from:
         raise ConfigError("latents_to writes a pack here, latents_from trains from one there: give one of them")
     if cfg.minutes is not None and not cfg.minutes > 0:
@@ -134,10 +148,14 @@ def run(cfg: DictConfig) -> dict:
         start_model = base_model
         if cfg.fresh_width:  # a new flow network on the model's autoencoder: its open-loop steps start from zero
             model_cfg, start_model = fresh_velocity(base_model, model_cfg, cfg.fresh_width, cfg.seed)
+        if cfg.refine.steps:  # an arm refiner after the decoder, everything else the starting model's
+            model_cfg, start_model = with_refiner(start_model, model_cfg, cfg.refine.width, cfg.seed)
         model = (copy.deepcopy(start_model) if base else instantiate(model_cfg, _convert_="all")).to(device)
         ema = copy.deepcopy(model).requires_grad_(False)
         optimizers = {"ae": torch.optim.AdamW(model.autoencoder.parameters(), lr=cfg.ae.lr),
-                      "flow": torch.optim.AdamW(model.velocity.parameters(), lr=cfg.flow.lr)}
+                      "flow": torch.optim.AdamW(model.velocity.parameters(), lr=cfg.flow.lr),
+                      **({"refine": torch.optim.AdamW(model.refiner.parameters(), lr=cfg.refine.lr)}
+                         if cfg.refine.steps else {})}
         chunks_of = ((lambda ahead: pack.chunks(model, ahead)) if packed else  # noqa: E731
                      (lambda ahead: episode_chunks(model, episodes, device, fresh=False, chunks_ahead=ahead)))
         if cfg.minutes:  # planned from timed steps on copies, so the run itself starts from the untouched model
@@ -148,6 +166,8 @@ def run(cfg: DictConfig) -> dict:
                 "cameras": {str(t): c.to_dict() for t, c in cameras.items()}, "episodes": len(episodes),
                 "expert_only": bool(cfg.expert_only), "policy_collections": cfg.policy_collections, "held_out": held,
                 "rollout_steps": prior + int(cfg.rollout.steps),
+                **({"refine_steps": int((base_meta or {}).get("refine_steps") or 0) + int(cfg.refine.steps)}
+                   if cfg.refine.steps or (base_meta or {}).get("refine_steps") else {}),
                 **({"init_from_step": None if cfg.fresh_width else base_meta.get("step")} if base else {}),
                 **({"trained_from": {"latent_pack": key["latents_from"][:12], "every": cfg.latents_every,
                                      "fresh_width": cfg.fresh_width}} if packed else {})}
@@ -163,12 +183,16 @@ def run(cfg: DictConfig) -> dict:
                                   flow_phase(model, ema, optimizers["flow"], episodes, cameras, cfg, device)]
         if cfg.rollout.steps:
             phases.append(rollout_phase(model, ema, optimizers["flow"], chunks_of, cameras, cfg, device))
+        if cfg.refine.steps:  # after the open-loop phase: the refiner learns to redraw what that flow model imagines
+            phases.append(refine_phase(model, ema, optimizers["refine"], lambda ahead: episode_chunks(
+                model, episodes, device, fresh=False, chunks_ahead=ahead, frames=True), cameras, cfg, device))
         log.info("training on %d episodes (%d held out): %s on %s; work dir %s", len(episodes), len(held),
                  " + ".join(f"{p.steps} {p.name}" for p in phases), device, work)
         trainer.fit(phases, after_step=snapshots(work, ema, model_cfg, meta, prior, cfg.rollout.steps, cfg.snapshots),
                     deadline=deadline)
-        opened = trainer.step - sum(p.steps for p in phases if p.name != "rollout")  # phase-3 steps this run took
-        final = trainer.save_final(work / "worldsim", model=ema, rollout_steps=prior + max(0, opened))
+        before = sum(p.steps for p in phases if p.name in ("autoencoder", "flow"))
+        opened = min(int(cfg.rollout.steps), max(0, trainer.step - before))  # phase-3 steps this run took
+        final = trainer.save_final(work / "worldsim", model=ema, rollout_steps=prior + opened)
         if trainer.stopped_early:
             stage.not_recorded = f"the deadline (minutes={cfg.minutes}) came at step {trainer.step}; the same command goes on"
         report = evaluate_fidelity(cfg, ema, kinematics, cameras, held_eps, work, baseline=base_model) if held_eps else {}

@@ -12,7 +12,7 @@ import torch
 from hydra.utils import instantiate
 
 from worldenv_core import distributed
-from worldenv_core.kinematics.action_map import draw_action_maps_per_rollout
+from worldenv_core.kinematics.action_map import draw_action_maps_per_rollout, gripper_mask
 from worldenv_core.kinematics.camera import PinholeCamera
 from worldenv_core.models.checkpoint import save_model
 from worldenv_core.models.worldsim_data import LatentChunks, encode_episode_frames
@@ -104,6 +104,64 @@ def rollout_phase(model, ema, optimizer, chunks_of, cameras, cfg, device) -> Pha
     return Phase("rollout", cfg.rollout.steps, draw, step)
 
 
+def refine_phase(model, ema, optimizer, chunks_of, cameras, cfg, device) -> Phase:
+    """Phase 4, the arm refiner (`WorldSimulator.refiner`) on what imagination decodes. The flow model
+    and the autoencoder stay as they are; each step imagines `depth` chunks of the recorded actions
+    (0..`refine.chunks`, drawn per step; 0 decodes the real latents), decodes the last chunk and asks
+    the refiner, given those frames' action maps, for the real frames: L1 + MSE, weighted
+    `refine.arm_weight` times more inside the gripper's projected region, where the model loses the
+    robot. `chunks_of(chunks_ahead)` gives LatentChunks with the real frames ("frames")."""
+    ahead = cfg.refine.chunks + 1  # items carry "past" (what imagination starts from) only when wider than a chunk
+
+    def draw(start: int):
+        return zip(count(start), batches(chunks_of(ahead), cfg.refine.batch_size, cfg.seed + 3, start_step=start))
+
+    def step(item) -> dict:
+        done, b = item
+        g = torch.Generator().manual_seed(step_seed(cfg.seed + 3, done))
+        depth = int(torch.randint(cfg.refine.chunks + 1, (1,), generator=g))
+        k = model.chunk
+        n = max(depth, 1) * k
+        maps = _maps(b["proprio"][:, :n].to(device), b["task_id"], cameras, model.map_size)
+        with torch.no_grad():
+            if depth == 0:
+                z = b["target"][:, :k].to(device) / model.latent_scale
+            else:
+                actions = b["actions"][:, :n].float().to(device)
+                history = past = b["past"].to(device) / model.latent_scale
+                for c in range(depth):
+                    history = torch.cat([history, model.next_chunk(history, past[:, -1], maps[:, c * k:(c + 1) * k],
+                                                                   actions[:, c * k:(c + 1) * k])], dim=1)
+                z = history[:, -k:]
+            decoded = model.decode(z)
+        last = slice(n - k, n)
+        out = model.refiner(decoded.flatten(0, 1), maps[:, last].flatten(0, 1))
+        target = b["frames"][:, last].flatten(0, 1).to(device).float() / 255
+        mask = _masks(b["proprio"][:, last].to(device), b["task_id"], cameras, model.image_size).flatten(0, 1)
+        valid = b["valid"][:, last].flatten().to(device).float()
+        weight = (1 + cfg.refine.arm_weight * mask.float())[:, None] * valid[:, None, None, None]
+        err = (out - target).abs() + (out - target).pow(2)
+        loss = (err * weight).sum() / (weight.sum() * 3).clamp(min=1)
+        optimize(loss, optimizer, clip=1.0, params=list(model.refiner.parameters()))
+        _update_ema(ema, model, cfg.flow.ema)
+        with torch.no_grad():
+            arm = mask[:, None].expand_as(out)
+            before = (decoded.flatten(0, 1) - target).abs()[arm].mean()
+            after = (out - target).abs()[arm].mean()
+        return {"refine": loss.item(), "refine_depth": depth, "arm_l1_decoded": before.item(),
+                "arm_l1_refined": after.item()}
+    return Phase("refine", cfg.refine.steps, draw, step)
+
+
+def _masks(proprio: torch.Tensor, task_ids, cameras: dict[int, PinholeCamera], size: int) -> torch.Tensor:
+    """(B, n, 7) states -> (B, n, S, S) bool: the gripper's projected region through each item's camera."""
+    out = torch.zeros(*proprio.shape[:2], size, size, dtype=torch.bool, device=proprio.device)
+    for tid in {int(t) for t in task_ids}:
+        rows = [i for i, t in enumerate(task_ids) if int(t) == tid]
+        out[rows] = gripper_mask(proprio[rows].flatten(0, 1), cameras[tid], size).view(len(rows), *out.shape[1:])
+    return out
+
+
 @torch.no_grad()
 def _update_ema(ema, model, decay: float) -> None:
     if not distributed.last_micro_batch():  # once per optimizer step, after it
@@ -114,9 +172,10 @@ def _update_ema(ema, model, decay: float) -> None:
         be.copy_(bm)
 
 
-def episode_chunks(model, episodes, device, fresh: bool, chunks_ahead: int = 1) -> LatentChunks:
+def episode_chunks(model, episodes, device, fresh: bool, chunks_ahead: int = 1, frames: bool = False) -> LatentChunks:
     """Every frame of `episodes` encoded once by the model's autoencoder, sliced into chunks; `fresh`
-    first sets the latent scales from them (entering phase 2)."""
+    first sets the latent scales from them (entering phase 2); `frames` keeps the real images in the
+    items too (the refine phase)."""
     model.eval()
     cam = next(iter(episodes[0].images))
     latents = [encode_episode_frames(model, ep.images[cam], device=device) for ep in episodes]
@@ -127,7 +186,8 @@ def episode_chunks(model, episodes, device, fresh: bool, chunks_ahead: int = 1) 
         deltas = torch.cat([(lat[k:] - lat[:-k]).flatten() for lat in latents for k in range(1, model.chunk + 1)
                             if len(lat) > k])
         model.delta_scale.fill_(float(deltas.std() / z.std()))
-    return LatentChunks(latents, episodes, model.memory_offsets, model.chunk, chunks_ahead)
+    images = [torch.from_numpy(ep.images[cam]).permute(0, 3, 1, 2).contiguous() for ep in episodes] if frames else None
+    return LatentChunks(latents, episodes, model.memory_offsets, model.chunk, chunks_ahead, images)
 
 
 def fresh_velocity(base, model_cfg: dict, width: int, seed: int):
@@ -140,6 +200,20 @@ def fresh_velocity(base, model_cfg: dict, width: int, seed: int):
     kept = {k: v for k, v in base.state_dict().items() if not k.startswith("velocity.")}
     missing, unexpected = model.load_state_dict(kept, strict=False)
     assert not unexpected and all(k.startswith("velocity.") for k in missing), (missing, unexpected)
+    return cfg, model
+
+
+def with_refiner(base, model_cfg: dict, width: int, seed: int):
+    """-> (config, model): `base` with an `ArmRefiner` of `width` after its decoder (its own refiner
+    kept when it has one of that width: a refine phase that goes on); everything else is base's."""
+    if int(model_cfg.get("refiner_width") or 0) == width:
+        return model_cfg, copy.deepcopy(base)
+    cfg = {**model_cfg, "refiner_width": int(width)}
+    torch.manual_seed(seed)
+    model = instantiate(cfg, _convert_="all")
+    kept = {k: v for k, v in base.state_dict().items() if not k.startswith("refiner.")}
+    missing, unexpected = model.load_state_dict(kept, strict=False)
+    assert not unexpected and all(k.startswith("refiner.") for k in missing), (missing, unexpected)
     return cfg, model
 
 

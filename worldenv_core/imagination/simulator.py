@@ -91,10 +91,10 @@ class ImaginedSimulator:
         self.rollout_cameras = list(cameras) if cameras is not None else None
         self.latents = self.model.encode(frames.to(self.device))
         self.anchor_latent = self.latents[:, -1]
-        if self.detail_gate > 0:
-            recon = self.model.decode(self.latents[:, -1])
-            self.anchor = (recon, frames[:, -1].to(self.device).float() / 255 - recon)
         self.proprio = proprio.to(self.device, torch.float64)
+        if self.detail_gate > 0:  # the anchor is decoded as imagined frames are, its own map included
+            recon = self.render_plain(self.latents[:, -1:], self._maps(self.proprio[:, None]))[:, 0]
+            self.anchor = (recon, frames[:, -1].to(self.device).float() / 255 - recon)
         self.carry = observed_carry(prev_proprio.to(self.device, torch.float64), self.proprio) if prev_proprio is not None else None
 
     def memory(self) -> torch.Tensor:
@@ -113,20 +113,29 @@ class ImaginedSimulator:
             raise ValueError(f"actions must be ({self.latents.shape[0]}, {self.model.chunk}, 7), got {tuple(actions.shape)}")
         actions = actions.to(self.device)
         states, self.carry = self.kinematics.rollout(self.proprio, actions.double(), self.carry)
-        maps = (draw_action_maps(states.float(), self.camera, size=self.model.map_size) if self.rollout_cameras is None
-                else draw_action_maps_per_rollout(states, self.rollout_cameras, self.model.map_size))
+        maps = self._maps(states)
         z = self.model.next_chunk(self.latents, self.anchor_latent, maps, actions.float(), steps=self.steps,
                                   generator=generator, noise_scale=self.noise)
         self.latents = torch.cat([self.latents, z], dim=1)
         self.proprio = states[:, -1]
-        kept = {"all": z, "last": z[:, -1:], "none": None}[decode]
-        frames = (self.render(kept) * 255).round().to(torch.uint8) if kept is not None else None
+        kept = {"all": slice(None), "last": slice(-1, None), "none": None}[decode]
+        frames = (self.render(z[:, kept], maps[:, kept]) * 255).round().to(torch.uint8) if kept is not None else None
         return ChunkResult(proprio=states.float(), latents=z, action_maps=maps, frames=frames)
 
+    def _maps(self, states: torch.Tensor) -> torch.Tensor:
+        """(B, n, 7) states -> (B, n, 3, S, S) action maps, each rollout through its own camera."""
+        return (draw_action_maps(states.float(), self.camera, size=self.model.map_size) if self.rollout_cameras is None
+                else draw_action_maps_per_rollout(states, self.rollout_cameras, self.model.map_size))
 
-    def render(self, z: torch.Tensor) -> torch.Tensor:
-        """(B, n, C, h, w) latents -> (B, n, 3, H, W) images in [0, 1], with detail transfer if on."""
-        x = self.model.decode(z)
+    def render_plain(self, z: torch.Tensor, maps: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, n, C, h, w) latents -> (B, n, 3, H, W) in [0, 1], decoded (and, given the frames' action
+        maps, refined where the model has a refiner), without detail transfer."""
+        return self.model.decode(z, maps if self.model.refiner is not None else None)
+
+    def render(self, z: torch.Tensor, maps: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, n, C, h, w) latents -> (B, n, 3, H, W) images in [0, 1], with detail transfer if on;
+        `maps` (B, n, 3, S, S): the frames' action maps, for a model with a refiner."""
+        x = self.render_plain(z, maps)
         if self.detail_gate <= 0:
             return x
         recon, detail = (a[:, None] for a in self.anchor)

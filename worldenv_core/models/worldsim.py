@@ -137,6 +137,32 @@ class VelocityNet(nn.Module):
         return self.out(h)
 
 
+class ArmRefiner(nn.Module):
+    """A decoded frame redrawn where the action map says the robot is (EVAC's pixel conditioning, after
+    the decoder): the arm is fully determined by the proprio state the map draws, but a 16x16x4 latent
+    carries it coarsely and open loop it smears into the background within a few chunks. The refiner sees
+    the decoded image and the frame's action map at map resolution and adds a residual at full
+    resolution; its last layer starts at zero, so an untrained refiner leaves every frame as decoded."""
+
+    def __init__(self, image_size: int, map_size: int, width: int = 32, blocks: int = 3):
+        super().__init__()
+        factor = image_size // map_size
+        if factor * map_size != image_size or factor < 1:
+            raise ValueError(f"the refiner needs image_size {image_size} a multiple of map_size {map_size}")
+        self.stem = nn.Conv2d(3, width, factor, stride=factor)  # the image to the map's grid
+        self.fuse = nn.Conv2d(width + 3, width, 3, padding=1)
+        self.blocks = nn.Sequential(*[ResBlock(width, width) for _ in range(blocks)])
+        self.out = nn.Sequential(nn.GroupNorm(_groups(width), width), nn.SiLU(),
+                                 nn.Conv2d(width, 3 * factor * factor, 3, padding=1), nn.PixelShuffle(factor))
+        nn.init.zeros_(self.out[-2].weight)
+        nn.init.zeros_(self.out[-2].bias)
+
+    def forward(self, images: torch.Tensor, maps: torch.Tensor) -> torch.Tensor:
+        """images (N, 3, H, W) in [0, 1], maps (N, 3, S, S) in [0, 1] -> (N, 3, H, W) in [0, 1]."""
+        h = self.fuse(torch.cat([self.stem(images * 2 - 1), maps * 2 - 1], dim=1))
+        return (images + self.out(self.blocks(h))).clamp(0, 1)
+
+
 class WorldSimulator(nn.Module):
     """Args:
         image_size, chunk: the task contract (frames are square; K frames per call).
@@ -152,13 +178,15 @@ class WorldSimulator(nn.Module):
         static_snap: open-loop drift control (worldenv_core/imagination/simulator.py): latent positions whose
             predicted change from the last real frame is below this (mean |change| over channels,
             in latent std units) are snapped back to that frame; 0 = off.
+        refiner_width: > 0 adds an `ArmRefiner` of this width after the decoder (frames decoded with
+            their action maps are redrawn where the robot is; trained by train_worldsim's refine phase).
     """
 
     def __init__(self, image_size: int, chunk: int = 8, memory_offsets=(0, 4, 8, 16), latent_size: int = 16,
                  latent_channels: int = 4, ae_widths=(32, 64), ae_patch: int = 4, width: int = 48,
                  map_channels: int = 16, map_size: int | None = None, use_raw_actions: bool = False,
                  sampling_steps: int = 4, action_dim: int = 7, detail_gate: float = 0.0, noise_scale: float = 1.0,
-                 static_snap: float = 0.0):
+                 static_snap: float = 0.0, refiner_width: int = 0):
         super().__init__()
         self.map_size = int(map_size or image_size // 2)  # action maps are drawn at this resolution
         if self.map_size % latent_size:
@@ -181,6 +209,9 @@ class WorldSimulator(nn.Module):
         self.autoencoder = Autoencoder(image_size, latent_size, latent_channels, ae_widths, ae_patch)
         self.velocity = VelocityNet(latent_channels, len(self.memory_offsets), self.map_size, latent_size, chunk,
                                     width, map_channels, action_dim, use_raw_actions)
+        if refiner_width < 0:
+            raise ValueError(f"refiner_width must be >= 0 (0 = no refiner), got {refiner_width}")
+        self.refiner = ArmRefiner(image_size, self.map_size, refiner_width) if refiner_width else None
         # latents are rescaled to unit variance and deltas to unit variance (set from data)
         self.register_buffer("latent_scale", torch.ones(()))
         self.register_buffer("delta_scale", torch.ones(()))
@@ -197,10 +228,13 @@ class WorldSimulator(nn.Module):
         z = self.autoencoder.encode(images.reshape(-1, *images.shape[-3:])) / self.latent_scale
         return z.reshape(*lead, *z.shape[1:])
 
-    def decode(self, z: torch.Tensor) -> torch.Tensor:
-        """(..., C, h, w) scaled latents -> (..., 3, H, W) images in [0, 1]."""
+    def decode(self, z: torch.Tensor, maps: torch.Tensor | None = None) -> torch.Tensor:
+        """(..., C, h, w) scaled latents -> (..., 3, H, W) images in [0, 1]; with their action maps
+        (..., 3, S, S) a model with a refiner redraws the robot where the maps put it."""
         lead = z.shape[:-3]
         x = self.autoencoder.decode(z.reshape(-1, *z.shape[-3:]) * self.latent_scale)
+        if self.refiner is not None and maps is not None:
+            x = self.refiner(x, maps.reshape(-1, *maps.shape[-3:]).to(x.dtype))
         return x.reshape(*lead, *x.shape[1:])
 
     def _condition(self, memory: torch.Tensor, action_maps: torch.Tensor, actions: torch.Tensor | None):

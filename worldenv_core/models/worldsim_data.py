@@ -34,16 +34,20 @@ class LatentChunks(Dataset):
     `chunks_ahead` > 1 (open-loop training) widens an item to `chunks_ahead` x K steps ahead
     ("target", "proprio", "actions", "valid" of shape (chunks_ahead * K, ...)) and adds "past", the
     real latents t - history .. t (history + 1, C, h, w) that an imagined rollout from t starts
-    with; t then only runs to where the last chunk still has a step inside the episode."""
+    with; t then only runs to where the last chunk still has a step inside the episode.
+
+    `frames` (one (T + 1, 3, H, W) uint8 tensor per episode) adds "frames", the real images of the
+    steps ahead, for what learns to draw them (the refiner)."""
 
     def __init__(self, latents: list[torch.Tensor], episodes: list[Episode], memory_offsets, chunk: int,
-                 chunks_ahead: int = 1):
+                 chunks_ahead: int = 1, frames: list[torch.Tensor] | None = None):
         if chunks_ahead < 1:
             raise ValueError(f"chunks_ahead must be >= 1, got {chunks_ahead}")
         self.latents = latents
         self.proprio = [torch.from_numpy(ep.proprio) for ep in episodes]
         self.actions = [torch.from_numpy(ep.actions) for ep in episodes]
         self.task_ids = [ep.meta.task_id for ep in episodes]
+        self.frames = frames
         self.offsets = np.asarray(memory_offsets)
         self.chunk, self.ahead = chunk, chunks_ahead
         lead = chunk * (chunks_ahead - 1)  # steps before the last chunk
@@ -62,6 +66,8 @@ class LatentChunks(Dataset):
         act_idx = torch.from_numpy(np.clip(fut - 1, 0, T - 1))
         item = {"memory": z[mem], "target": z[fut_idx], "proprio": self.proprio[e][fut_idx],
                 "actions": self.actions[e][act_idx], "valid": torch.from_numpy(valid), "task_id": self.task_ids[e]}
+        if self.frames is not None:
+            item["frames"] = self.frames[e][fut_idx]
         if self.ahead > 1:
             item["past"] = z[torch.arange(t - int(self.offsets.max()), t + 1).clamp(min=0)]
         return item

@@ -233,3 +233,33 @@ def test_refit_kinematics_keeps_the_weights_and_scores_the_fit_on_held_out_episo
     with pytest.raises(ValueError, match="held-out"):  # only the held-out episode: nothing to fit on
         held = [p for p in (exp / "data").glob("*/*/*/*.mcap") if "/".join(p.parts[-3:]) in base_meta["held_out"]]
         refit_kinematics.main([str(base), *map(str, held), "--out", str(tmp_path / "none")])
+
+
+def test_the_arm_refiner_trains_on_imagined_frames_and_keeps_everything_else(demo_experiment, contract, tmp_path):
+    """`init_from=<model> refine.steps=N`: a refiner after the decoder learns from imagined chunks; the
+    autoencoder, flow model, held-out episodes and kinematics stay the starting model's, and the
+    report measures the starting model on the same starts."""
+    import torch
+
+    from worldenv_core.stage import ConfigError
+
+    exp = demo_experiment
+    base = expert_only_model(exp)
+    with pytest.raises(ConfigError, match="refine.steps.*init_from"):
+        train_worldsim(cfg(tmp_path / "none", "expert_only=true", "refine.steps=2"))
+    with pytest.raises(ConfigError, match="refine.arm_weight"):
+        train_worldsim(cfg(exp, "expert_only=true", f"init_from={base}", "refine.steps=2", "refine.arm_weight=-1"))
+    metrics = train_worldsim(cfg(exp, "expert_only=true", f"init_from={base}", "refine.steps=4", "refine.chunks=1",
+                                 "refine.batch_size=2", "refine.width=8", "log_every=1"))
+    assert metrics["steps"] == 4
+    m = Manifest(exp)
+    refined = m.latest("train_worldsim", task="tiny", data="expert")
+    folder = next(p for p in m.resolve(refined) if p.name == "model.safetensors").parent
+    (start, start_meta), (model, meta) = (load_checkpoint(f, "worldsim", contract()) for f in (base, folder))
+    assert model.refiner is not None and start.refiner is None and meta["refine_steps"] == 4
+    assert meta["held_out"] == start_meta["held_out"] and meta["kinematics"] == start_meta["kinematics"]
+    state = model.state_dict()
+    assert all(torch.equal(v, state[n]) for n, v in start.state_dict().items())  # only the refiner trained
+    assert any(state[n].abs().sum() > 0 for n in state if n.startswith("refiner.out"))  # it left its zero start
+    report = json.loads(next(p for p in m.resolve(refined) if p.name == "fidelity.json").read_text())["fidelity"]
+    assert all("start_ssim_gripper" in v and "model_ssim_gripper" in v for v in report.values())

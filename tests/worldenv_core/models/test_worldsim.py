@@ -202,3 +202,64 @@ def test_next_chunk_is_the_flow_prediction_from_the_history_with_the_static_snap
     want = snap_static(model.predict_latents(history[:, [4, 2]], maps, acts), anchor, 0.15)
     torch.testing.assert_close(z, want)
     assert not z.requires_grad  # an input of the open-loop loss, not part of its graph
+
+
+def test_arm_refiner_starts_as_the_plain_decoder_and_learns_to_draw_where_the_map_says():
+    """Zero-initialised, a refiner leaves decoded frames as they are; trained on frames whose only
+    content is a disc that the action map alone places, it draws the disc at a held-out position."""
+    torch.manual_seed(0)
+    cam = PinholeCamera("agentview", 64, 60.0, np.array([0.0, 0.0, 1.0]), np.eye(3))  # looking down at z = 0
+    model = WorldSimulator(**{**TINY, "refiner_width": 8}).eval()
+    z = torch.randn(3, 4, 16, 16)
+    states = torch.zeros(3, 7)
+    states[:, 0] = torch.tensor([-0.1, 0.0, 0.1])
+    maps = draw_action_maps(states, cam, size=model.map_size)
+    torch.testing.assert_close(model.decode(z, maps), model.decode(z))
+    with pytest.raises(ValueError, match="refiner_width"):
+        WorldSimulator(**{**TINY, "refiner_width": -1})
+
+    def batch(n, gen):  # grey frames with a white disc where the gripper projects: only the map says where
+        s = torch.zeros(n, 7)
+        s[:, :2] = (torch.rand(n, 2, generator=gen) - 0.5) * 0.5
+        s[:, 6] = 1.0
+        disc = draw_action_maps(s, cam, size=64)[:, :1].amax(1, keepdim=True) > 0.5
+        return torch.full((n, 3, 64, 64), 0.5), draw_action_maps(s, cam, size=model.map_size), torch.where(disc, 1.0, 0.5).expand(-1, 3, -1, -1)
+
+    gen = torch.Generator().manual_seed(1)
+    held_images, held_maps, held_target = batch(8, torch.Generator().manual_seed(99))
+    on_disc = held_target > 0.75
+    before = (model.refiner(held_images, held_maps) - held_target).abs()[on_disc].mean().item()
+    opt = torch.optim.Adam(model.refiner.parameters(), lr=3e-3)
+    for _ in range(200):
+        images, m, target = batch(16, gen)
+        loss = ((model.refiner(images, m) - target).abs() * (1 + 20 * (target > 0.75))).mean()  # the arm weight
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        after = (model.refiner(held_images, held_maps) - held_target).abs()[on_disc].mean().item()
+    assert before == pytest.approx(0.5) and after < 0.2, (before, after)
+
+
+def test_imagined_frames_are_refined_with_their_own_action_maps(tmp_path, contract):
+    """The simulator hands each decoded frame's action map to the refiner (the anchor's too), and the
+    refiner travels in the checkpoint."""
+    torch.manual_seed(0)
+    cam = PinholeCamera("agentview", 64, 60.0, np.array([0.0, 0.0, 1.0]), np.eye(3))  # looking down at z = 0
+    model = WorldSimulator(**{**TINY, "refiner_width": 8, "detail_gate": 0.0}).eval()
+    torch.nn.init.normal_(model.refiner.out[-2].weight, std=0.5)
+    frames = (torch.rand(2, 1, 3, 64, 64) * 255).to(torch.uint8)
+    proprio = torch.tensor([[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0], [0.05, -0.05, 0.0, 0.0, 0.0, 0.0, 0.0]])
+    sim = ImaginedSimulator(model, NextStateModel(), cam)
+    sim.reset(frames, proprio)
+    out = sim.step(torch.zeros(2, 4, 7), decode="all")
+    expect = model.decode(out.latents, out.action_maps)
+    torch.testing.assert_close(out.frames, (expect * 255).round().to(torch.uint8))
+    assert not torch.equal(out.frames, (model.decode(out.latents) * 255).round().to(torch.uint8))
+    last = sim.step(torch.zeros(2, 4, 7), decode="last")
+    torch.testing.assert_close(last.frames[:, 0], (model.decode(last.latents[:, -1], last.action_maps[:, -1]) * 255)
+                               .round().to(torch.uint8))
+    cfg = {**TINY_CFG, "refiner_width": 8, "detail_gate": 0.0}
+    path = save_model(tmp_path / "ws", model, cfg, {"kind": "worldsim", "image_size": 64, "chunk": 4})
+    loaded, _ = load_checkpoint(path, "worldsim", contract(image_size=64, chunk=4))
+    torch.testing.assert_close(loaded.decode(out.latents, out.action_maps), expect)
