@@ -45,7 +45,7 @@ ON_A_MODEL = ("latents_to", "latents_from", "fresh_width", "minutes")  # setting
 # settings added after runs were made: at these values a run keeps its record's settings hash and work dir
 LATER_DEFAULTS = {"latents_to": None, "latents_from": None, "latents_every": 1, "fresh_width": None, "minutes": None,
                   "snapshots": 1, "policy_collections": "latest",
-                  "refine": {"steps": 0, "chunks": 3, "batch_size": 8, "lr": 1e-3, "arm_weight": 4.0, "width": 32}}
+                  "refine": {"steps": 0, "chunks": 3, "batch_size": 8, "frames": 2, "lr": 1e-3, "arm_weight": 4.0, "width": 16}}
 
 
 def validate(cfg: DictConfig) -> None:
@@ -59,7 +59,7 @@ def validate(cfg: DictConfig) -> None:
     positive_int(cfg, "rollout.batch_size")
     for key in ("refine.steps", "refine.chunks"):
         positive_int(cfg, key, allow_zero=True)
-    for key in ("refine.batch_size", "refine.width"):
+    for key in ("refine.batch_size", "refine.frames", "refine.width"):
         positive_int(cfg, key)
     if cfg.refine.arm_weight < 0:
         raise ConfigError(f"refine.arm_weight must be >= 0, got {cfg.refine.arm_weight}")

@@ -107,8 +107,8 @@ def rollout_phase(model, ema, optimizer, chunks_of, cameras, cfg, device) -> Pha
 def refine_phase(model, ema, optimizer, chunks_of, cameras, cfg, device) -> Phase:
     """Phase 4, the arm refiner (`WorldSimulator.refiner`) on what imagination decodes. The flow model
     and the autoencoder stay as they are; each step imagines `depth` chunks of the recorded actions
-    (0..`refine.chunks`, drawn per step; 0 decodes the real latents), decodes the last chunk and asks
-    the refiner, given those frames' action maps, for the real frames: L1 + MSE, weighted
+    (0..`refine.chunks`, drawn per step; 0 decodes the real latents), decodes `refine.frames` frames of
+    the last chunk and asks the refiner, given those frames' action maps, for the real frames: L1 + MSE, weighted
     `refine.arm_weight` times more inside the gripper's projected region, where the model loses the
     robot. `chunks_of(chunks_ahead)` gives LatentChunks with the real frames ("frames")."""
     ahead = cfg.refine.chunks + 1  # items carry "past" (what imagination starts from) only when wider than a chunk
@@ -133,8 +133,10 @@ def refine_phase(model, ema, optimizer, chunks_of, cameras, cfg, device) -> Phas
                     history = torch.cat([history, model.next_chunk(history, past[:, -1], maps[:, c * k:(c + 1) * k],
                                                                    actions[:, c * k:(c + 1) * k])], dim=1)
                 z = history[:, -k:]
-            decoded = model.decode(z)
-        last = slice(n - k, n)
+            # a few frames of the chunk (decoding and the full-resolution pass are the cost; the policy reads one)
+            pick = torch.randperm(k, generator=g)[:min(k, cfg.refine.frames)].sort().values
+            decoded = model.decode(z[:, pick])
+        last = (n - k + pick).tolist()
         out = model.refiner(decoded.flatten(0, 1), maps[:, last].flatten(0, 1))
         target = b["frames"][:, last].flatten(0, 1).to(device).float() / 255
         mask = _masks(b["proprio"][:, last].to(device), b["task_id"], cameras, model.image_size).flatten(0, 1)
