@@ -89,11 +89,7 @@ def rollout_phase(model, ema, optimizer, chunks_of, cameras, cfg, device) -> Pha
         if depth == 0:  # teacher forcing: the recorded memory (items carry no "past" when rollout.chunks = 0)
             memory = b["memory"].to(device) / model.latent_scale
         else:
-            history = past = b["past"].to(device) / model.latent_scale
-            for c in range(depth):  # no_grad inside next_chunk: the memory is an input, as at inference
-                history = torch.cat([history, model.next_chunk(history, past[:, -1], maps[:, c * k:(c + 1) * k],
-                                                               actions[:, c * k:(c + 1) * k])], dim=1)
-            memory = model.memory(history)
+            memory = model.memory(_imagine(model, b["past"].to(device) / model.latent_scale, maps, actions, depth))
         memory = memory + cfg.flow.memory_noise * torch.randn_like(memory)
         last = slice(depth * k, n)
         loss = model.flow_loss(memory, maps[:, last], b["target"][:, last].to(device) / model.latent_scale,
@@ -127,12 +123,8 @@ def refine_phase(model, ema, optimizer, chunks_of, cameras, cfg, device) -> Phas
             if depth == 0:
                 z = b["target"][:, :k].to(device) / model.latent_scale
             else:
-                actions = b["actions"][:, :n].float().to(device)
-                history = past = b["past"].to(device) / model.latent_scale
-                for c in range(depth):
-                    history = torch.cat([history, model.next_chunk(history, past[:, -1], maps[:, c * k:(c + 1) * k],
-                                                                   actions[:, c * k:(c + 1) * k])], dim=1)
-                z = history[:, -k:]
+                z = _imagine(model, b["past"].to(device) / model.latent_scale, maps,
+                             b["actions"][:, :n].float().to(device), depth)[:, -k:]
             # a few frames of the chunk (decoding and the full-resolution pass are the cost; the policy reads one)
             pick = torch.randperm(k, generator=g)[:min(k, cfg.refine.frames)].sort().values
             decoded = model.decode(z[:, pick])
@@ -153,6 +145,16 @@ def refine_phase(model, ema, optimizer, chunks_of, cameras, cfg, device) -> Phas
         return {"refine": loss.item(), "refine_depth": depth, "arm_l1_decoded": before.item(),
                 "arm_l1_refined": after.item()}
     return Phase("refine", cfg.refine.steps, draw, step)
+
+
+def _imagine(model, past: torch.Tensor, maps: torch.Tensor, actions: torch.Tensor, depth: int) -> torch.Tensor:
+    """`depth` open-loop chunks of the recorded actions from the real latents `past`, exactly as imagination
+    steps (`next_chunk`: its sampler and static snap, no gradient) -> the history, past then imagined."""
+    k, history = model.chunk, past
+    for c in range(depth):
+        history = torch.cat([history, model.next_chunk(history, past[:, -1], maps[:, c * k:(c + 1) * k],
+                                                       actions[:, c * k:(c + 1) * k])], dim=1)
+    return history
 
 
 def _masks(proprio: torch.Tensor, task_ids, cameras: dict[int, PinholeCamera], size: int) -> torch.Tensor:
@@ -192,17 +194,23 @@ def episode_chunks(model, episodes, device, fresh: bool, chunks_ahead: int = 1, 
     return LatentChunks(latents, episodes, model.memory_offsets, model.chunk, chunks_ahead, images)
 
 
+def _rebuilt(base, model_cfg: dict, setting: str, value: int, fresh: str, seed: int):
+    """-> (config, model): `base` rebuilt with `setting=value`, the parameters under `fresh` newly
+    initialised (seeded) and every other weight and buffer base's."""
+    cfg = {**model_cfg, setting: int(value)}
+    torch.manual_seed(seed)
+    model = instantiate(cfg, _convert_="all")
+    kept = {k: v for k, v in base.state_dict().items() if not k.startswith(fresh)}
+    missing, unexpected = model.load_state_dict(kept, strict=False)
+    assert not unexpected and all(k.startswith(fresh) for k in missing), (missing, unexpected)
+    return cfg, model
+
+
 def fresh_velocity(base, model_cfg: dict, width: int, seed: int):
     """-> (config, model): `base` with a newly initialised flow network of `width` (a model-size curve
     on one autoencoder); the autoencoder and the latent and delta scales are base's (the flow works in
     its latent space, which a latent pack holds)."""
-    cfg = {**model_cfg, "width": int(width)}
-    torch.manual_seed(seed)
-    model = instantiate(cfg, _convert_="all")
-    kept = {k: v for k, v in base.state_dict().items() if not k.startswith("velocity.")}
-    missing, unexpected = model.load_state_dict(kept, strict=False)
-    assert not unexpected and all(k.startswith("velocity.") for k in missing), (missing, unexpected)
-    return cfg, model
+    return _rebuilt(base, model_cfg, "width", width, "velocity.", seed)
 
 
 def with_refiner(base, model_cfg: dict, width: int, seed: int):
@@ -210,13 +218,7 @@ def with_refiner(base, model_cfg: dict, width: int, seed: int):
     kept when it has one of that width: a refine phase that goes on); everything else is base's."""
     if int(model_cfg.get("refiner_width") or 0) == width:
         return model_cfg, copy.deepcopy(base)
-    cfg = {**model_cfg, "refiner_width": int(width)}
-    torch.manual_seed(seed)
-    model = instantiate(cfg, _convert_="all")
-    kept = {k: v for k, v in base.state_dict().items() if not k.startswith("refiner.")}
-    missing, unexpected = model.load_state_dict(kept, strict=False)
-    assert not unexpected and all(k.startswith("refiner.") for k in missing), (missing, unexpected)
-    return cfg, model
+    return _rebuilt(base, model_cfg, "refiner_width", width, "refiner.", seed)
 
 
 def snapshots(work: Path, ema, model_cfg: dict, meta: dict, prior: int, steps: int, k: int):
