@@ -177,7 +177,7 @@ def keyframe_rows(args, contract, env, camera, encoder) -> dict:
     paths = sorted(Path(p) for pattern in args.episodes for p in glob.glob(pattern))
     if not paths:
         raise ConfigError(f"--episodes {args.episodes}: no recorded episode matches")
-    contexts, starts = contexts_from_episodes(paths, camera, args.frames, tuple(args.depth))
+    contexts, starts = contexts_from_episodes(paths, camera, args.frames, tuple(args.depth), contract.chunk)
     policy, _ = load_checkpoint(args.policy, "policy", contract, device="cpu")
     g = torch.Generator().manual_seed(args.seed)
     seeds = torch.randint(2**62, (args.pairs,), generator=g).tolist()

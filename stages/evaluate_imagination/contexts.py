@@ -19,7 +19,7 @@ from worldenv_core.data.selection import MissingEpisodesError, collected_episode
 from worldenv_core.envs.recording import cached_env
 from worldenv_core.envs.replay import RealStart, StartJob, restore, unreplayable
 from worldenv_core.errors import ConfigError
-from worldenv_core.imagination.env import Context, mid_episode_frames
+from worldenv_core.imagination.env import Context, check_depth, mid_episode_frames
 from worldenv_core.models.checkpoint import read_config
 from worldenv_core.parallel import run_jobs
 
@@ -68,7 +68,7 @@ def context_episodes(manifest, stage, contract: TaskContract, scale: str, worlds
 
 
 def build_contexts(cfg, contract: TaskContract, held: list[Path]) -> tuple[list[PairedContext], list[str]]:
-    """init_states benchmark init states per task, then episode_frames frames of the first
+    """init_states benchmark init states per task, then episode_frames frames (at contexts.depth) of the first
     episodes_per_task of `held` (the context episodes) of each task (and its first frame with
     `contexts.episode_start`); a mid-episode frame whose
     prefix does not replay to its recorded state is dropped here, before any imagination (its
@@ -92,9 +92,9 @@ def build_contexts(cfg, contract: TaskContract, held: list[Path]) -> tuple[list[
             continue
         per_task[t] = per_task.get(t, 0) + 1
         starts = [0] if c.episode_start else []  # where LOOP starts (its contexts are first frames)
-        for f in starts + mid_episode_frames(ep.success, ep.length, c.episode_frames):
+        for f in starts + mid_episode_frames(ep.success, ep.length, c.episode_frames, check_depth(c.depth)):
             episodes.append(PairedContext(RealStart(task_id=t, seed=ep.meta.seed, episode=str(path), frame=f),
-                                          Context.from_episode(ep, camera, f), "episode"))
+                                          Context.from_episode(ep, camera, f, contract.chunk), "episode"))
     errors = unreplayable(contract, [x.start for x in episodes], workers=cfg.workers, launcher=cfg.launcher,
                           ray_address=cfg.ray_address, progress=cfg.progress)
     for key, error in errors.items():

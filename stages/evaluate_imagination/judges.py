@@ -27,9 +27,11 @@ class Judge:
     eta: float
 
 
-def judge_pairs(rows: list[dict], frames_dir: Path, judges: list[Judge], load, instruction_of, encoder) -> bool:
+def judge_pairs(rows: list[dict], frames_dir: Path, judges: list[Judge], load, instruction_of, encoder,
+                past_of=lambda row: None) -> bool:
     """Score every row's stored frames with each judge it has no scores of yet (`row["more_reflectors"]`).
-    `load(judge) -> reward model`; `instruction_of(row) -> str`. -> whether anything was added."""
+    `load(judge) -> reward model`; `instruction_of(row) -> str`; `past_of(row)`: a mid-episode context's recorded
+    frames before it, which every judge is shown as the terminating reflector was. -> whether anything was added."""
     todo = [j for j in judges if any(j.name not in r["more_reflectors"] for r in rows)]
     for j in todo:
         model = load(j)
@@ -42,6 +44,6 @@ def judge_pairs(rows: list[dict], frames_dir: Path, judges: list[Judge], load, i
                                         f"{j.name} cannot judge them; run again with store_frames=true")
             with np.load(path) as f:
                 row["more_reflectors"][j.name] = {
-                    side: rescored(model, instruction_of(row), f[key], encoder)
+                    side: rescored(model, instruction_of(row), f[key], encoder, past_of(row))
                     for side, key in (("imagined_scores", "imagined"), ("real_scores", "real"))}
     return bool(todo)

@@ -24,7 +24,7 @@ from stages.evaluate_imagination.judges import Judge, judge_pairs
 from stages.report import write_report
 from worldenv_core.data.selection import episode_key
 from worldenv_core.files import write_text_atomic
-from worldenv_core.imagination.env import build_imagined_env
+from worldenv_core.imagination.env import build_imagined_env, check_depth
 from worldenv_core.manifest import StageRun, config_hash, sha256_file
 from worldenv_core.models.checkpoint import WEIGHTS, load_checkpoint, read_config
 from worldenv_core.models.text import InstructionEncoder
@@ -35,11 +35,13 @@ from worldenv_core.training import pick_device
 
 # 2: each benchmark init state's replays told apart by task. Pairs files and finished runs of an earlier
 # pairing (every task's init-state contexts paired with one task's replays) are not reused: made again.
-PAIRING = 2
+# 3: the reward model judging a mid-episode context's pairs is shown the recorded frames before it on both sides
+# (`Context.history`, `replay.recorded_history`), as it was trained on whole prefixes.
+PAIRING = 3
 log = logging.getLogger("worldenv.evaluate_imagination")
 
 
-LATER_CONTEXT_KEYS = {"source": "held_out", "episode_start": False}
+LATER_CONTEXT_KEYS = {"source": "held_out", "episode_start": False, "depth": [0.0, 1.0]}
 
 
 def episode_frames(cfg) -> int:
@@ -61,6 +63,10 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError("contexts.source=training pairs from mid-episode frames of training episodes only (reflector "
                           "training data; the benchmark init states are the evaluations'): set contexts.init_states=0 "
                           "and contexts.episodes_per_task > 0")
+    try:
+        check_depth(cfg.contexts.depth)
+    except ValueError as e:
+        raise ConfigError(f"contexts.depth: {e}") from None
     if cfg.contexts.init_states > 50:
         raise ConfigError(f"contexts.init_states is at most 50 (the benchmark has 50 per task), got {cfg.contexts.init_states}")
     if not cfg.contexts.init_states and not (cfg.contexts.episodes_per_task and episode_frames(cfg)):
@@ -129,6 +135,7 @@ def run(cfg: DictConfig) -> dict:
         stage.lock(work)
         judges = further_reflectors(cfg, stage, contract, camera, contexts)  # after the work dir: not part of its name
         results, instructions = {}, {c.context.task_id: c.context.instruction for c in contexts}
+        pasts = {c.start.key: c.context.history for c in contexts}  # what the further judges are shown too
         for i, v in enumerate(variants):
             path = work / f"{variant_key(v)}.json"
             frames = work / "frames" / path.stem if cfg.store_frames else None
@@ -143,7 +150,7 @@ def run(cfg: DictConfig) -> dict:
             if v.paired and judges and judge_pairs(
                     results[v.name]["rows"], frames, judges,
                     lambda j: load_checkpoint(j.path, "reflector", contract, device=str(device))[0],
-                    lambda row: instructions[row["task_id"]], encode):
+                    lambda row: instructions[row["task_id"]], encode, lambda row: pasts.get(row["start"])):
                 _write_json(path, results[v.name])  # the judges' scores kept: named again, they cost nothing
         summary = summarise(results, [v.name for v in variants], eta, list(cfg.horizons), tuple(judges))
         # the prefix checks reset the real simulator too; a dropped context is named, not hidden

@@ -54,11 +54,12 @@ def episode_starts(paths: list[Path], cameras: list[str], mid_frames: int, depth
             yield ep, RealStart(task_id=ep.meta.task_id, episode=str(p), frame=f)
 
 
-def contexts_from_episodes(paths: list[Path], camera: str, mid_frames: int = 0,
-                           depth=WHOLE_DEPTH) -> tuple[list[Context], list[RealStart]]:
+def contexts_from_episodes(paths: list[Path], camera: str, mid_frames: int = 0, depth=WHOLE_DEPTH,
+                           history_every: int = 0) -> tuple[list[Context], list[RealStart]]:
     """LOOP's contexts (frame, proprio and instruction at each start frame of each collected
-    episode) and where each starts in the real simulator (the paired replays at evaluations)."""
-    pairs = [(Context.from_episode(ep, camera, st.frame), st)
+    episode, and with `history_every` = the chunk a mid-episode frame's recorded past for the reward
+    model) and where each starts in the real simulator (the paired replays at evaluations)."""
+    pairs = [(Context.from_episode(ep, camera, st.frame, history_every), st)
              for ep, st in episode_starts(paths, [camera], mid_frames, depth)]
     return [c for c, _ in pairs], [st for _, st in pairs]
 
@@ -256,7 +257,8 @@ def rollouts(cfg: DictConfig, stage, contract: TaskContract, policy, encode, epi
         if pack is not None:  # chosen where the episodes are, by the same rules
             out.contexts, out.keys = pack.contexts, pack.keys
         else:
-            contexts, starts = contexts_from_episodes(episodes, camera, rl.mid_episode_frames, context_depth(rl))
+            contexts, starts = contexts_from_episodes(episodes, camera, rl.mid_episode_frames, context_depth(rl),
+                                                      contract.chunk)
             keep = chosen(cfg, stage, contract, starts)
             out.contexts, out.starts = [contexts[i] for i in keep], [starts[i] for i in keep]
             out.keys = [st.key for st in out.starts]

@@ -19,7 +19,8 @@ from omegaconf import DictConfig, OmegaConf
 from stages.train_reflector.evaluation import evaluate_held_out, headline
 from stages.train_reflector.training import cross_validate_eta, fit, imagined_copies
 from worldenv_core.data.selection import POLICY_COLLECTIONS, collected_episodes, episode_key, load_split
-from worldenv_core.imagination.pairs import calibration_rows, calibration_starts, checked_episodes, eta_on_pairs
+from worldenv_core.imagination.pairs import (calibration_rows, calibration_starts, checked_episodes, eta_on_pairs,
+                                            pair_past)
 from worldenv_core.imagination.verdict import ETA_GRID, rescored
 from worldenv_core.manifest import StageRun
 from worldenv_core.models.checkpoint import save_model
@@ -138,8 +139,9 @@ def run(cfg: DictConfig) -> dict:
         eta, chosen_by = (cv["chosen_eta"], f"{cfg.eta_folds}-fold cross-validation") if cv else (float(cfg.eta), "config")
         on_pairs = None
         if calibration:  # train.pairs_eta_every: the verdict's F1 on pairs it did not train on
-            on_pairs = eta_on_pairs(calibration, lambda row, frames: rescored(model, instructions[int(row["task_id"])],
-                                                                              frames, encoder), ETA_GRID, float(cfg.eta))
+            on_pairs = eta_on_pairs(calibration, lambda row, frames: rescored(  # judged as the imagined env will
+                model, instructions[int(row["task_id"])], frames, encoder, pair_past(row, contract.cameras[0], contract.chunk)),
+                ETA_GRID, float(cfg.eta))
             (work / "eta_on_pairs.json").write_text(json.dumps(on_pairs, indent=2))
             stage.add_output(work / "eta_on_pairs.json", kind="report")
             eta, chosen_by = on_pairs["chosen_eta"], f"verdict F1 on {on_pairs['pairs']} held-out training pairs"
@@ -175,7 +177,9 @@ def paired_training(cfg, stage, instructions: dict[int, str], held: list[Path]) 
     pairs = []
     try:
         set_aside = calibration_starts(folders, int(cfg.train.pairs_eta_every))
-        per_folder = [(folder, checked_episodes(folder, instructions, forbidden, set_aside)) for folder in folders]
+        past_of = lambda row: pair_past(row, cfg.task.cameras[0], int(cfg.task.chunk))  # noqa: E731
+        per_folder = [(folder, checked_episodes(folder, instructions, forbidden, set_aside, past_of))
+                      for folder in folders]
     except (ValueError, FileNotFoundError) as e:
         raise ConfigError(f"train.pairs_from: {e}") from None
     for folder, got in per_folder:

@@ -197,6 +197,18 @@ class PairedReplayJob:
     horizon: int = 0
 
 
+def recorded_history(start: RealStart, camera: str, every: int):
+    """The recorded frames before a mid-episode start that its imagined side's reward model is shown
+    (`Context.history`), (n, 3, H, W) uint8; None for a start at an episode's beginning or a placement."""
+    from worldenv_core.data.mcap_io import read_episode
+    from worldenv_core.imagination.env import history_frames
+
+    if start.episode is None or start.frame < every or every <= 0:
+        return None
+    return history_frames(read_episode(start.episode, cameras=[camera], load_sim_state=False).images[camera],
+                          start.frame, every)
+
+
 @functools.cache
 def _encoder():
     """One instruction encoder per worker process (loading it costs more than a replay's scoring)."""
@@ -216,9 +228,12 @@ def replay_context(job: PairedReplayJob) -> dict:
     env = cached_env(c.suite, job.start.task_id, c.cameras, c.image_size, render=True)
     reflector = cached_reflector(job.reflector_path, c) if job.reflector_path else None
     encoder = _encoder() if reflector is not None else None
+    history = recorded_history(job.start, camera, c.chunk) if reflector is not None else None
     replays = []
     for actions, keep in zip(job.actions, job.keep):
         scorer = reflector.scorer([env.instruction], encoder) if reflector is not None else None
+        if history is not None and hasattr(scorer, "add_history"):  # the imagined side's scorer saw the same past
+            scorer.add_history([history])
         replays.append(execute(env, job.start, np.asarray(actions), c.chunk, camera, scorer,
                                None if keep is None else frozenset(keep)))
     closed = []

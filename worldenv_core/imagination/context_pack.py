@@ -1,8 +1,8 @@
 """A context pack: imagined LOOP's contexts as one safetensors file, so that `post_train_loop
 contexts_from=<pack>` runs on a machine that has neither the episodes, the simulator nor the
 instruction encoder's weights (a rented GPU). Imagined LOOP needs of an episode only the frame,
-proprio and instruction it starts from: the pack holds those (frames as uint8, 49 KB each at
-128 px), each instruction's embedding by the encoder the policy was trained with, where each
+proprio and instruction it starts from (and a mid-episode frame's recorded past, which the reward
+model is shown): the pack holds those (frames as uint8, 49 KB each at 128 px), each instruction's embedding by the encoder the policy was trained with, where each
 context came from, the task contract it was chosen under and the settings that chose it.
 `post_train_loop contexts_to=<pack>` writes one from exactly the contexts the stage would train on."""
 
@@ -55,6 +55,10 @@ def write_context_pack(path: str | Path, contexts: list[Context], keys: list[str
                "proprio": torch.stack([torch.as_tensor(c.proprio, dtype=torch.float64) for c in contexts]),
                "task_ids": torch.tensor([c.task_id for c in contexts]),
                "embeddings": encoder(instructions).float().contiguous()}
+    lengths = [0 if c.history is None else len(c.history) for c in contexts]
+    if any(lengths):  # mid-episode contexts' recorded pasts for the reward model, concatenated
+        tensors["history"] = torch.cat([c.history for c in contexts if c.history is not None]).contiguous()
+        tensors["history_lengths"] = torch.tensor(lengths)
     meta = {"format": FORMAT, "camera": camera, "keys": json.dumps(keys), "instructions": json.dumps(instructions),
             "context_instructions": json.dumps([c.instruction for c in contexts]), "task": json.dumps(task),
             "settings": json.dumps(settings or {})}
@@ -66,8 +70,10 @@ def read_context_pack(path: str | Path) -> ContextPack:
                    f"python -m stages.post_train_loop +task=<task> contexts_to={path}") as (f, meta):
         t = {k: f.get_tensor(k) for k in f.keys()}
     texts = json.loads(meta["context_instructions"])
-    contexts = [Context(task_id=int(tid), instruction=s, frame=fr, proprio=p)
-                for tid, s, fr, p in zip(t["task_ids"].tolist(), texts, t["frames"], t["proprio"])]
+    lengths = t["history_lengths"].tolist() if "history_lengths" in t else [0] * len(texts)
+    pasts = iter(t["history"].split([k for k in lengths if k])) if any(lengths) else iter(())
+    contexts = [Context(task_id=int(tid), instruction=s, frame=fr, proprio=p, history=next(pasts) if k else None)
+                for tid, s, fr, p, k in zip(t["task_ids"].tolist(), texts, t["frames"], t["proprio"], lengths)]
     table = dict(zip(json.loads(meta["instructions"]), t["embeddings"]))
     return ContextPack(contexts, json.loads(meta["keys"]), PackedInstructions(table), meta["camera"],
                        json.loads(meta.get("task", "{}")), json.loads(meta.get("settings", "{}")))

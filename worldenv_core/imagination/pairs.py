@@ -66,6 +66,17 @@ def paired_rows(folder: Path) -> list[tuple[dict, Path]]:
     return out
 
 
+def pair_past(row: dict, camera: str, every: int):
+    """The recorded frames before a pair's mid-episode context that its reward model was shown on both sides
+    (`Context.history`), (n, 3, H, W) uint8; None for an init-state context or a pair made before pairing 3."""
+    if row.get("context_kind") != "episode":
+        return None
+    from worldenv_core.envs.replay import RealStart, recorded_history  # the simulator's side: only when asked
+
+    episode, frame = str(row["start"]).rsplit("@", 1)
+    return recorded_history(RealStart(task_id=int(row["task_id"]), episode=episode, frame=int(frame)), camera, every)
+
+
 def start_episode(row: dict) -> str | None:
     """The collected episode a pair's context is a frame of (None: a benchmark init state)."""
     return episode_key(str(row["start"]).rsplit("@", 1)[0]) if row.get("context_kind") == "episode" else None
@@ -82,11 +93,13 @@ def calibration_starts(folders: list[Path], every: int) -> set[str]:
 
 
 def checked_episodes(folder: Path, instructions: dict[int, str], forbidden: set[str],
-                     set_aside: set[str] = frozenset()) -> list[CheckedEpisode]:
+                     set_aside: set[str] = frozenset(), past_of=lambda row: None) -> list[CheckedEpisode]:
     """Both sides of every pair in `folder` with its real labels. Refused when a pair starts at a
     benchmark init state (the evaluations') or in one of `forbidden` (the reflector's held-out
     episodes): training there would score the test. Pairs whose real replay failed are skipped,
-    and so are those starting in `set_aside` (kept to choose eta: `calibration_rows`)."""
+    and so are those starting in `set_aside` (kept to choose eta: `calibration_rows`). `past_of(row)`
+    (`pair_past`): the recorded frames before the pair's keyframe, put before both sides as checks
+    not yet succeeded, so the reflector trains on the whole prefixes it is asked about."""
     out = []
     for row, path in paired_rows(folder):
         start = start_episode(row)
@@ -101,9 +114,12 @@ def checked_episodes(folder: Path, instructions: dict[int, str], forbidden: set[
         chunk, first = int(row["chunk"]), row["real_first_success"]
         with np.load(path) as f:
             sides = {side: f[side] for side in SIDES}
+        past = past_of(row)
+        past = np.zeros((0, *sides["real"].shape[1:]), np.uint8) if past is None else past.permute(0, 2, 3, 1).numpy()
         for side, frames in sides.items():
             checks = np.arange(len(frames)) * chunk
             success = checks >= first if first is not None else np.zeros(len(frames), dtype=bool)
+            frames, success = np.concatenate([past, frames]), np.concatenate([np.zeros(len(past), bool), success])
             meta = SimpleNamespace(task_id=task, instruction=instructions[task], side=side, start=row["start"])
             out.append(CheckedEpisode(frames, success, meta, chunk))
     return out

@@ -106,13 +106,22 @@ def pair(run: ImaginedRun, real: dict, task_id: int, context_kind: str, policy: 
             "real_error": real["error"], "more_reflectors": {}}
 
 
-def rescored(reflector, instruction: str, frames: np.ndarray, encoder) -> list[float]:
+def rescored(reflector, instruction: str, frames: np.ndarray, encoder, past=None) -> list[float]:
     """R after every check of a pair's side, from its frames at the checks (K, H, W, 3) uint8, as
-    the incremental scorer of the imagined env or the replay gave it (same frames, same prefixes)."""
+    the incremental scorer of the imagined env or the replay gave it (same frames, same prefixes;
+    `past`: a mid-episode context's recorded frames before them, `Context.history`)."""
     video = torch.from_numpy(np.ascontiguousarray(frames)).permute(0, 3, 1, 2)
     weights = next(reflector.parameters(), None)
     video = video.to(weights.device) if weights is not None else video
-    return [round(float(s), 5) for s in reflector.score_prefixes(video, instruction, list(range(len(video))), encoder)]
+    scorer = reflector.scorer([instruction], encoder) if past is not None else None
+    if scorer is None or not hasattr(scorer, "add_history"):  # one padded batch of every prefix
+        return [round(float(s), 5) for s in reflector.score_prefixes(video, instruction, list(range(len(video))), encoder)]
+    scorer.add_history([past.to(video.device)])
+    out = []
+    for k in range(len(video)):
+        scorer.add(video[k:k + 1])
+        out.append(round(float(scorer.score()[0]), 5))
+    return out
 
 
 def terminal_reward(scores: list[float], eta: float) -> float:

@@ -112,6 +112,31 @@ class IncrementalScorer:
         self.model = model.eval()
         self.instruction = instruction  # (B, C)
         self.feats: list[torch.Tensor] = []  # per frame, (B, D)
+        self.first: torch.Tensor | None = None  # (B,) each video's first real frame where histories differ in length
+
+    @torch.no_grad()
+    def add_history(self, histories: list) -> None:
+        """Before the first `add`: each video's frames before its first one ((n_b, 3, H, W) oldest first, or None),
+        judged as part of its prefix (a rollout started mid-episode, its recorded past). Shorter histories are
+        left-padded and masked, so every video's score is its own prefix's."""
+        if self.feats:
+            raise RuntimeError("add_history() comes before the first add()")
+        if len(histories) != len(self.instruction):
+            raise ValueError(f"{len(histories)} histories for {len(self.instruction)} videos")
+        n = [0 if h is None else len(h) for h in histories]
+        if not max(n, default=0):
+            return
+        frames = torch.cat([h for h in histories if h is not None and len(h)])
+        lang = torch.cat([self.instruction[b:b + 1].expand(k, -1) for b, k in enumerate(n) if k])
+        f = self.model.encode_frames(frames, lang)
+        width = max(n)
+        padded = f.new_zeros(len(n), width, f.shape[-1])
+        rows = iter(f.split([k for k in n if k]))
+        for b, k in enumerate(n):
+            if k:
+                padded[b, width - k:] = next(rows)
+        self.feats = list(padded.unbind(1))
+        self.first = torch.tensor([width - k for k in n])
 
     @torch.no_grad()
     def add(self, frames: torch.Tensor) -> None:
@@ -128,10 +153,23 @@ class IncrementalScorer:
         """-> (B,) R(o_{1:t}, g) of every video's prefix so far."""
         if not self.feats:
             raise RuntimeError("add() at least one frame before score()")
+        if self.first is not None and bool(self.first.any()):
+            return self._score_ragged()
         idx = subsample_indices(len(self.feats), self.model.max_frames).tolist()
         feats = torch.stack([self.feats[i] for i in idx], dim=1)
         mask = torch.ones(feats.shape[:2], dtype=torch.bool, device=feats.device)
         return torch.sigmoid(self.model.aggregate(feats, mask, self.instruction))
+
+    def _score_ragged(self) -> torch.Tensor:
+        """score() where videos start at different frames: each its own sub-sample, right-padded and masked."""
+        all_feats = torch.stack(self.feats, dim=1)  # (B, T, D)
+        picks = [int(f) + subsample_indices(len(self.feats) - int(f), self.model.max_frames) for f in self.first]
+        width = max(len(p) for p in picks)
+        batch = all_feats.new_zeros(len(picks), width, all_feats.shape[-1])
+        mask = torch.zeros(len(picks), width, dtype=torch.bool, device=all_feats.device)
+        for b, p in enumerate(picks):
+            batch[b, : len(p)], mask[b, : len(p)] = all_feats[b, p.to(all_feats.device)], True
+        return torch.sigmoid(self.model.aggregate(batch, mask, self.instruction))
 
 
 @torch.no_grad()

@@ -118,7 +118,8 @@ def test_a_rerun_reuses_the_pairs_and_bad_settings_fail_first(paired):
     assert json.dumps(again["headline"]) == json.dumps(summary["headline"])  # sft@1's pairs were kept
     for overrides, match in ((["noise_scales=[0]"], "noise_scales must be positive"),
                              (["horizons=[5]"], "multiples of the chunk"), (["eta=2"], "eta"),
-                             (["contexts.init_states=0", "contexts.episodes_per_task=0"], "no contexts")):
+                             (["contexts.init_states=0", "contexts.episodes_per_task=0"], "no contexts"),
+                             (["contexts.depth=[0.9,0.5]"], "contexts.depth")):
         with pytest.raises(ConfigError, match=match):
             evaluate_imagination(stage_cfg("evaluate_imagination", exp, *PAIRED, *overrides))
 
@@ -185,3 +186,20 @@ def test_pairs_on_training_episodes_train_a_reflector_and_count_as_its_training_
     assert json.loads(ckpt.read_text())["meta"]["eta"] == aside["eta"]
     with pytest.raises(ConfigError, match="pairs_eta_every sets pairs aside"):
         train_reflector(stage_cfg("train_reflector", exp, *REFLECTOR, "train.pairs_eta_every=2"))
+
+
+def test_contexts_lie_at_the_depth_asked_for_in_the_held_out_episodes(paired):
+    """contexts.depth: the mid-episode frames spread over that fraction of the part before the first success
+    (keyframes a short imagined window can finish from), a run of its own beside the whole-part one. Last in the
+    module: the tests above read the latest run as the one with init-state contexts."""
+    from worldenv_core.data.mcap_io import read_episode
+
+    exp, _ = paired
+    out = evaluate_imagination(stage_cfg("evaluate_imagination", exp, *PAIRED, "contexts.init_states=0",
+                                         "contexts.depth=[0.8,0.95]", "noise_scales=[1.0]", "closed_loop_rollouts=0"))
+    rec = Manifest(exp).latest("evaluate_imagination", task="tiny")
+    rows = json.loads(next(Path(exp, a.path) for a in rec.files("report") if a.path.endswith("pairs.json")).read_text())
+    (start,) = {r["start"] for r in rows["sft@1"]["rows"]}
+    episode, frame = start.rsplit("@", 1)
+    success = np.flatnonzero(read_episode(Path(episode), cameras=[], load_sim_state=False).success)[0]
+    assert 0.8 * success <= int(frame) <= 0.95 * success and out["headline"]["rollouts"] == 2

@@ -82,6 +82,33 @@ def test_a_replay_job_returns_one_real_outcome_per_action_sequence(demo, contrac
     assert set(out["replays"][0]["frames"]) == {8} and set(out["replays"][1]["frames"]) == {0, 4}
 
 
+def test_the_real_side_scores_a_mid_episode_replay_with_the_recorded_past(demo, contract, tmp_path):
+    """The reflector judging a replay from frame f is shown the recorded frames before f at the chunk spacing, as
+    the imagined side's is (`Context.history`): its first score is that of the whole recorded prefix."""
+    import torch
+    from hydra.utils import instantiate
+
+    from tests.worldenv_core.models.test_reflector import small_config
+    from worldenv_core.models.checkpoint import save_model
+    from worldenv_core.models.text import InstructionEncoder
+
+    path, ep = demo
+    c = contract()
+    cfg = {**small_config(max_frames=8, input_size=32), "instruction_dim": 384}  # the instruction encoder's width
+    cfg["frame_encoder"] = {**cfg["frame_encoder"], "cond_dim": 384}
+    model = instantiate(cfg).eval()
+    save_model(tmp_path / "r", model, cfg, {"kind": "reflector", "image_size": c.image_size, "camera": "agentview"})
+    f = 2 * c.chunk + 1
+    start = RealStart(task_id=ep.meta.task_id, seed=ep.meta.seed, episode=str(path), frame=f)
+    out = replay_context(PairedReplayJob(c, start, actions=(ep.actions[f:f + c.chunk],), keep=(None,),
+                                         reflector_path=str(tmp_path / "r")))
+    images = torch.from_numpy(ep.images["agentview"]).permute(0, 3, 1, 2)
+    lang = InstructionEncoder()([ep.meta.instruction])[0]
+    with_past = model.score_video(images[[1, 1 + c.chunk, f]], lang)
+    assert out["replays"][0]["scores"][0] == pytest.approx(float(with_past), abs=1e-4)
+    assert out["replays"][0]["scores"][0] != pytest.approx(float(model.score_video(images[[f]], lang)), abs=1e-4)
+
+
 def test_each_benchmark_init_state_has_its_own_key_per_task_and_a_repeated_key_is_refused():
     # init state 0 of task 0 and of task 1 are two contexts: keyed alike, one task's replays once stood for both
     starts = [RealStart(task_id=t, init_state=i) for t in (0, 1) for i in (0, 1)]

@@ -35,6 +35,17 @@ def test_a_pack_reads_back_its_contexts_keys_embeddings_task_and_settings(tmp_pa
     with pytest.raises(KeyError, match="no embedding of \\['close it'\\]"):
         pack.encoder(["close it"])
     assert [p.name for p in (tmp_path / "sub").iterdir()] == ["c.st"]  # no temporary file left
+    assert all(c.history is None for c in pack.contexts)
+
+
+def test_mid_episode_contexts_recorded_pasts_travel_in_the_pack(tmp_path):
+    made = contexts()
+    made[0].history = torch.randint(0, 256, (2, 3, 8, 8), dtype=torch.uint8)
+    made[2].history = torch.randint(0, 256, (5, 3, 8, 8), dtype=torch.uint8)
+    pack = read_context_pack(write_context_pack(tmp_path / "c.st", made, ["a@16", "b@0", "c@40"], encoder,
+                                                "agentview", TASK))
+    assert torch.equal(pack.contexts[0].history, made[0].history) and pack.contexts[1].history is None
+    assert torch.equal(pack.contexts[2].history, made[2].history)
 
 
 def test_what_is_not_a_pack_is_one_line_naming_it(tmp_path):

@@ -1,10 +1,12 @@
 """The vectorised imagined environment: reset from contexts, chunked steps, termination at eta
 and at the horizon, rewards frozen at t_end, mixed-task batches."""
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 import torch
 
-from worldenv_core.imagination.env import mid_episode_frames
+from worldenv_core.imagination.env import Context, history_frames, mid_episode_frames
 
 
 def test_rollouts_run_to_the_horizon_when_the_reflector_never_fires(make_env, contexts):
@@ -67,3 +69,34 @@ def test_mid_episode_frames_keep_to_the_depth_asked_for():
     for bad in ((0.5, 0.5), (-0.1, 1.0), (0.2, 1.5), (0.3,), "deep"):
         with pytest.raises(ValueError, match="context depth"):
             mid_episode_frames(success, 30, 2, bad)
+
+
+def test_a_mid_episode_context_carries_its_recorded_past_at_the_chunk_spacing():
+    images = np.arange(30, dtype=np.uint8)[:, None, None, None] * np.ones((1, 2, 2, 3), np.uint8)
+    assert history_frames(images, 21, 4)[:, 0, 0, 0].tolist() == [1, 5, 9, 13, 17]  # oldest first, 4 apart
+    assert history_frames(images, 3, 4) is None and history_frames(images, 21, 0) is None
+
+    ep = SimpleNamespace(images={"agentview": images}, proprio=np.zeros((30, 7)),  # what from_episode reads
+                         meta=SimpleNamespace(task_id=0, instruction="task 0"))
+
+    c = Context.from_episode(ep, "agentview", 8, history_every=4)
+    assert c.history.shape == (2, 3, 2, 2) and c.history[:, 0, 0, 0].tolist() == [0, 4] and int(c.frame[0, 0, 0]) == 8
+    assert Context.from_episode(ep, "agentview", 8).history is None
+
+
+def test_the_reflector_scores_each_rollout_with_its_contexts_recorded_past(make_env, contexts):
+    """The imagined rollouts' R(o_{1:t}, g) counts the recorded frames before a mid-episode context, each context
+    its own: the same as the reflector's score of that whole video from scratch."""
+    env = make_env(eta=1.0)
+    made = contexts()
+    g = torch.Generator().manual_seed(3)
+    made[0].history = torch.randint(0, 255, (3, 3, 32, 32), generator=g, dtype=torch.uint8)
+    made[2].history = torch.randint(0, 255, (1, 3, 32, 32), generator=g, dtype=torch.uint8)
+    s = env.reset(made)
+    plain = make_env(eta=1.0).reset(contexts())
+    for b, c in enumerate(made):
+        video = c.frame[None] if c.history is None else torch.cat([c.history, c.frame[None]])
+        assert torch.allclose(s.reward[b], env.reflector.score_video(video, env.encoder([c.instruction])[0]), atol=1e-5)
+    assert torch.allclose(s.reward[1], plain.reward[1], atol=1e-6) and not torch.allclose(s.reward[0], plain.reward[0])
+    s = env.step(torch.zeros(3, 4, 7))
+    assert s.reward.shape == (3,) and ((s.reward > 0) & (s.reward < 1)).all()

@@ -38,6 +38,18 @@ def test_each_check_is_labelled_by_whether_the_real_replay_had_succeeded_by_then
     assert eps[0].steps_per_frame == 8 and eps[0].meta.instruction == "open the drawer"
 
 
+def test_a_keyframes_recorded_past_goes_before_both_sides_as_checks_not_yet_succeeded(tmp_path):
+    import torch
+
+    write_pairs(tmp_path, [row(13)])
+    past = torch.full((2, 3, 4, 4), 200, dtype=torch.uint8)
+    eps = checked_episodes(tmp_path, {0: "x"}, forbidden=set(), past_of=lambda r: past)
+    for ep in eps:  # two recorded checks, then the pair's five
+        assert ep.success.tolist() == [False] * 2 + [False, False, True, True, True]
+        assert ep.frames.shape == (7, 4, 4, 3) and int(ep.frames[1, 0, 0, 0]) == 200
+    assert int(eps[0].frames[2, 0, 0, 0]) == 0 and int(eps[1].frames[2, 0, 0, 0]) == 100
+
+
 def test_pairs_that_start_where_evaluations_judge_are_refused(tmp_path):
     write_pairs(tmp_path, [row(None, kind="init", start="task0@init0")])
     with pytest.raises(ValueError, match="benchmark init state"):

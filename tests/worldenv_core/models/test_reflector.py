@@ -75,6 +75,31 @@ def test_incremental_scoring_equals_scoring_each_prefix_from_scratch():
         assert torch.allclose(batched, torch.stack(full), atol=1e-5)
 
 
+def test_a_history_of_its_own_length_per_video_is_scored_as_that_videos_prefix():
+    """Rollouts started mid-episode: each video's recorded past (of its own length, or none) goes before its first
+    frame, and every later score equals scoring that video's whole prefix from scratch."""
+    torch.manual_seed(0)
+    model = instantiate(small_config(max_frames=4)).eval()
+    past = torch.randint(0, 255, (3, 5, 3, 16, 16), dtype=torch.uint8)
+    videos = torch.randint(0, 255, (3, 4, 3, 16, 16), dtype=torch.uint8)
+    lang = torch.randn(3, 16)
+    lengths = [5, 0, 2]
+    scorer = IncrementalScorer(model, lang)
+    scorer.add_history([past[0], None, past[2, -2:]])
+    for t in range(4):
+        scorer.add(videos[:, t])
+        got = scorer.score()
+        for b, k in enumerate(lengths):
+            whole = torch.cat([past[b, 5 - k:], videos[b, : t + 1]])
+            assert torch.allclose(got[b], model.score_video(whole, lang[b]), atol=1e-5)
+    with pytest.raises(RuntimeError, match="before the first add"):
+        scorer.add_history([None, None, None])
+    plain = IncrementalScorer(model, lang)
+    plain.add_history([None] * 3)  # no past at all: the plain scorer
+    plain.add(videos[:, 0])
+    assert plain.first is None and torch.allclose(plain.score()[1], model.score_video(videos[1, :1], lang[1]), atol=1e-5)
+
+
 def test_reflector_stop_fires_above_eta_only():
     model = instantiate(small_config()).eval()
     encoder = lambda texts: torch.randn(len(texts), 16)  # noqa: E731 - stands in for MiniLM
