@@ -128,6 +128,17 @@ def run(cfg: DictConfig) -> dict:
     return summary
 
 
+ROUND = 10  # episodes of a task collected before the next task's: any prefix of a long collection covers every task
+
+
+def job_order(task_ids: list[int], per_task: int, rounds_of: int = ROUND) -> list[tuple[int, int]]:
+    """(task, index) in collection order: rounds of `rounds_of` episodes per task, task after task, so a collection
+    stopped part way (a campaign across sessions) holds about as many of every task (and noise scale), and a
+    worker still meets one task's scene for ten episodes in a row (cached envs)."""
+    return [(t, k) for lo in range(0, per_task, rounds_of) for t in task_ids
+            for k in range(lo, min(lo + rounds_of, per_task))]
+
+
 def _collect(cfg: DictConfig, contract: TaskContract, task_ids: list[int], stage: StageRun,
              policy_path: str | None) -> dict:
     task = cfg.task
@@ -140,11 +151,11 @@ def _collect(cfg: DictConfig, contract: TaskContract, task_ids: list[int], stage
         fn, jobs = collect_policy_episode, [
             PolicyEpisodeJob(policy_path=policy_path, task_id=t, index=k, path=path(t, k),
                              noise_scale=float(scales[k % len(scales)]), stop_on_success=cfg.stop_on_success, **common)
-            for t in task_ids for k in range(cfg.episodes_per_task)]
+            for t, k in job_order(task_ids, cfg.episodes_per_task)]
     else:
         fn, jobs = collect_expert_episode, [
             ExpertEpisodeJob(task_id=t, index=k, path=path(t, k), max_attempts=cfg.max_attempts, **common)
-            for t in task_ids for k in range(cfg.episodes_per_task)]
+            for t, k in job_order(task_ids, cfg.episodes_per_task)]
     out_dir.mkdir(parents=True, exist_ok=True)
     stage.lock(out_dir)  # one collection at a time writes this folder
     repaired = set_aside_damaged(stage.manifest, [Path(j.path) for j in jobs])

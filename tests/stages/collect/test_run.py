@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 
-from stages.collect.run import episode_dir, run
+from stages.collect.run import episode_dir, job_order, run
 from worldenv_core.contract import TaskContract
 from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.envs.collection import ExpertEpisodeJob, collect_expert_episode
@@ -165,3 +165,13 @@ def test_expert_evaluation_on_a_local_ray_instance(tmp_path):
     (row,) = summary["expert_eval"]
     assert row["n"] == 2 and row["successes"] >= 1
     assert "| 0 | " in (tmp_path / "exp" / "expert_table.md").read_text()
+
+
+def test_a_long_collection_goes_round_by_round_so_any_prefix_covers_every_task():
+    order = job_order([0, 3, 7], 25, rounds_of=10)
+    assert sorted(order) == sorted((t, k) for t in (0, 3, 7) for k in range(25))  # every episode once
+    assert order[:12] == [(0, k) for k in range(10)] + [(3, 0), (3, 1)]
+    first = order[:30]  # a collection stopped after 30 episodes: ten of every task
+    assert {t: sum(1 for x, _ in first if x == t) for t in (0, 3, 7)} == {0: 10, 3: 10, 7: 10}
+    assert order[-5:] == [(7, k) for k in range(20, 25)]
+    assert job_order([1, 2], 5) == [(1, k) for k in range(5)] + [(2, k) for k in range(5)]  # demos: task by task
