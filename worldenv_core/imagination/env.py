@@ -152,6 +152,18 @@ class ImaginedEnv:
         return self.state
 
 
+def check_horizon(horizon: int, label_delay: int, chunk: int) -> None:
+    """An imagined horizon in which a success can be seen: the reflector calls a frame a success `label_delay` steps
+    after the event and is asked every chunk, so a horizon under delay + chunk ends before any verdict (measured:
+    16-step rollouts from late keyframes, 0 verdicts on real frames, docs/notebook/verdict_fidelity.md)."""
+    from worldenv_core.errors import ConfigError
+
+    if horizon < label_delay + chunk:
+        raise ConfigError(f"an imagined horizon of {horizon} steps is shorter than the reflector's label delay "
+                          f"({label_delay}) plus a chunk ({chunk}): no success could be seen in it; use at least "
+                          f"{label_delay + chunk}")
+
+
 def build_imagined_env(worldsim_path: str, reflector_path: str, eta: float, encoder, horizon: int,
                        sampling_steps: int | None, device, contract=None,
                        sampler_noise: float | None = None) -> tuple[ImaginedEnv, str]:
@@ -167,4 +179,5 @@ def build_imagined_env(worldsim_path: str, reflector_path: str, eta: float, enco
     if rmeta["camera"] != meta["camera"]:
         raise CheckpointError(f"the reflector watches {rmeta['camera']!r} but the world simulator imagines "
                               f"{meta['camera']!r}")
+    check_horizon(horizon, int(rmeta.get("label_delay", 0)), sim.model.chunk)
     return ImaginedEnv(sim, cameras, reflector, encoder, eta, horizon), meta["camera"]

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from worldenv_core.imagination.env import Context, history_frames, mid_episode_frames
+from worldenv_core.errors import ConfigError
+from worldenv_core.imagination.env import Context, check_horizon, history_frames, mid_episode_frames
 
 
 def test_rollouts_run_to_the_horizon_when_the_reflector_never_fires(make_env, contexts):
@@ -100,3 +101,11 @@ def test_the_reflector_scores_each_rollout_with_its_contexts_recorded_past(make_
     assert torch.allclose(s.reward[1], plain.reward[1], atol=1e-6) and not torch.allclose(s.reward[0], plain.reward[0])
     s = env.step(torch.zeros(3, 4, 7))
     assert s.reward.shape == (3,) and ((s.reward > 0) & (s.reward < 1)).all()
+
+
+def test_a_horizon_that_ends_before_the_reflector_could_call_a_success_is_refused():
+    check_horizon(16, label_delay=8, chunk=8)  # a success in the first chunk is seen at the second check
+    check_horizon(220, label_delay=8, chunk=8)
+    with pytest.raises(ConfigError, match="horizon of 8 steps is shorter than the reflector's label delay .8. plus a "
+                                          "chunk .8.*at least 16"):
+        check_horizon(8, label_delay=8, chunk=8)
