@@ -33,14 +33,11 @@ def verdict_scores(outcome: np.ndarray, said: np.ndarray) -> dict:
 
 
 def best_score(reflector, instruction: torch.Tensor, frames: torch.Tensor, past: torch.Tensor | None) -> float:
-    """The highest R over a pair side's checks after its first frame (the rollout's verdict is R > eta at any)."""
-    scorer = reflector.scorer(["-"], lambda _: instruction[None])
-    if past is not None:
-        scorer.add_history([past])
-    scores = []
-    for k in range(len(frames)):
-        scorer.add(frames[k:k + 1])
-        scores.append(float(scorer.score()[0]))
+    """The highest R over a pair side's checks after its first frame (the rollout's verdict is R > eta at any),
+    scored as the pairs' further judges are (`verdict.rescored`); `instruction` embedded, frames (K, 3, H, W)."""
+    from worldenv_core.imagination.verdict import rescored
+
+    scores = rescored(reflector, instruction, frames.permute(0, 2, 3, 1).numpy(), lambda _: instruction[None], past)
     return max(scores[1:], default=0.0)
 
 
@@ -68,20 +65,19 @@ def main(argv: list[str] | None = None) -> dict:
         if not rows:
             raise FileNotFoundError(f"{args.pairs}: no pair starts in a recorded episode (init states have no past)")
         best: dict[tuple[str, bool], list[float]] = {}
-        pasts, instructions = {}, {}
+        instructions = {}
         for row, frames_file in rows:
             episode = row["start"].rsplit("@", 1)[0]  # the recorded episode's path, then the frame
             if episode not in instructions:
                 instructions[episode] = encoder([read_episode(Path(episode), cameras=[], load_sim_state=False)
                                                  .meta.instruction])[0]
-            if row["start"] not in pasts:
-                pasts[row["start"]] = pair_past(row, camera, contract.chunk)
+            past = pair_past(row, camera, contract.chunk)
             stored = np.load(frames_file)
             for side in ("imagined", "real"):
                 video = torch.from_numpy(stored[side]).permute(0, 3, 1, 2)
                 for with_past in (True, False):
                     best.setdefault((side, with_past), []).append(best_score(
-                        reflector, instructions[episode], video, pasts[row["start"]] if with_past else None))
+                        reflector, instructions[episode], video, past if with_past else None))
         outcome = np.array([row["real_first_success"] is not None for row, _ in rows])
         result = {"pairs": str(args.pairs), "reflector": path, "eta": eta, "rollouts": len(rows),
                   "real_success": float(outcome.mean()),

@@ -2,7 +2,8 @@
 contexts_from=<pack>` runs on a machine that has neither the episodes, the simulator nor the
 instruction encoder's weights (a rented GPU). Imagined LOOP needs of an episode only the frame,
 proprio and instruction it starts from (and a mid-episode frame's recorded past, which the reward
-model is shown): the pack holds those (frames as uint8, 49 KB each at 128 px), each instruction's embedding by the encoder the policy was trained with, where each
+model is shown): the pack holds those (frames as uint8, 49 KB each at 128 px), each instruction's
+embedding by the encoder the policy was trained with, where each
 context came from, the task contract it was chosen under and the settings that chose it.
 `post_train_loop contexts_to=<pack>` writes one from exactly the contexts the stage would train on."""
 

@@ -12,6 +12,7 @@ the real simulator had succeeded by then (the question the verdict asks at that 
 
 from __future__ import annotations
 
+import functools
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -68,13 +69,19 @@ def paired_rows(folder: Path) -> list[tuple[dict, Path]]:
 
 def pair_past(row: dict, camera: str, every: int):
     """The recorded frames before a pair's mid-episode context that its reward model was shown on both sides
-    (`Context.history`), (n, 3, H, W) uint8; None for an init-state context or a pair made before pairing 3."""
+    (`Context.history`), (n, 3, H, W) uint8; None for an init-state context. Read once per start: a context's
+    rollouts are several rows (shared, not to be written to)."""
     if row.get("context_kind") != "episode":
         return None
+    return _start_past(str(row["start"]), int(row["task_id"]), camera, every)
+
+
+@functools.lru_cache(maxsize=64)
+def _start_past(start: str, task_id: int, camera: str, every: int):
     from worldenv_core.envs.replay import RealStart, recorded_history  # the simulator's side: only when asked
 
-    episode, frame = str(row["start"]).rsplit("@", 1)
-    return recorded_history(RealStart(task_id=int(row["task_id"]), episode=episode, frame=int(frame)), camera, every)
+    episode, frame = start.rsplit("@", 1)
+    return recorded_history(RealStart(task_id=task_id, episode=episode, frame=int(frame)), camera, every)
 
 
 def start_episode(row: dict) -> str | None:
