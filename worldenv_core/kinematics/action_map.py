@@ -2,8 +2,10 @@
 image on a black background, as pixel conditioning for the world simulator.
 
 A filled white disc at the projected gripper position whose radius grows with the gripper
-opening, and three line segments for the gripper's x (red), y (green) and z (blue) axes.
-Everything is drawn at once for a batch of states with distance fields over the pixel grid
+opening, and three line segments for the gripper's x (red), y (green) and z (blue) axes. Given
+the arm's skeleton (`arm.SerialArm.points`), its links are drawn under them as grey capsules as
+thick as the links look from the camera, the nearest link in front, shaded base (dark) to hand
+(light): the whole robot, not only its gripper. Everything is drawn at once for a batch of states with distance fields over the pixel grid
 (soft, anti-aliased edges), no Python loop over pixels or states.
 """
 
@@ -16,6 +18,7 @@ from worldenv_core.kinematics.next_state import axis_angle_to_matrix
 
 AXIS_LENGTH_M = 0.10
 AXIS_COLOURS = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+ARM_SHADE = (0.25, 0.6)  # the base's and the hand's grey; links between are graded
 
 
 def _pixel_grid(size: int, device) -> torch.Tensor:
@@ -44,13 +47,32 @@ def _segment_distance(grid: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> t
     return (grid - (a + t[..., None] * ab)).norm(dim=-1)
 
 
+def _draw_arm(points: torch.Tensor, camera: PinholeCamera, size: int, grid: torch.Tensor) -> torch.Tensor:
+    """points (N, P, 3) the arm's skeleton -> (N, H, W) grey levels (0 where no link is seen).
+    Each segment is a capsule of its link's radius at its depth; where links overlap the nearest wins."""
+    from worldenv_core.kinematics.arm import SEGMENT_RADIUS_M
+
+    if points.shape[-2] != len(SEGMENT_RADIUS_M) + 1:
+        raise ValueError(f"an arm skeleton has {len(SEGMENT_RADIUS_M) + 1} points, got {points.shape[-2]}")
+    uv, depth = _project_to(points, camera, size), camera.project(points)[1]
+    seg_depth = (0.5 * (depth[:, :-1] + depth[:, 1:])).clamp(min=1e-3)  # (N, L)
+    radius_m = torch.tensor(SEGMENT_RADIUS_M, dtype=points.dtype, device=points.device)
+    radius = camera.focal * (size / camera.image_size) * radius_m / seg_depth  # (N, L) pixels
+    cover = _coverage(_segment_distance(grid, uv[:, :-1], uv[:, 1:]), radius[..., None, None])  # (N, L, H, W)
+    front = torch.where(cover > 0, seg_depth[..., None, None], torch.inf).argmin(dim=1, keepdim=True)
+    shade = torch.linspace(*ARM_SHADE, len(SEGMENT_RADIUS_M), device=points.device)
+    return cover.gather(1, front)[:, 0] * shade[front[:, 0]]
+
+
 def draw_action_maps(states: torch.Tensor, camera: PinholeCamera, size: int | None = None,
-                     radius_px: tuple[float, float] | None = None, line_px: float | None = None) -> torch.Tensor:
+                     radius_px: tuple[float, float] | None = None, line_px: float | None = None,
+                     arm_points: torch.Tensor | None = None) -> torch.Tensor:
     """states (..., 7) = (eef pos, eef axis-angle, gripper opening in [0, 1]) ->
     maps (..., 3, S, S) in [0, 1], S = `size` (default: the camera's resolution; a world model
     that only patch-embeds its maps can take them smaller, and drawing costs S^2). Radii default
     to a fraction of the size so that maps look alike at every resolution: a disc of 2 %..5 % of
-    the width, lines of 0.8 %."""
+    the width, lines of 0.8 %. `arm_points` (..., P, 3): the arm's skeleton for each state, drawn
+    under the gripper (None: the gripper alone)."""
     size = int(size or camera.image_size)
     r_closed, r_open = radius_px or (0.02 * size, 0.05 * size)
     half_line = 0.5 * (line_px or max(1.0, 0.008 * size))
@@ -66,15 +88,22 @@ def draw_action_maps(states: torch.Tensor, camera: PinholeCamera, size: int | No
 
     colours = torch.tensor(AXIS_COLOURS, device=s.device)  # (3 axes, 3 rgb)
     img = disc[:, None].expand(-1, 3, -1, -1).clone()  # white disc
+    if arm_points is not None:
+        if arm_points.shape[:-2] != lead:
+            raise ValueError(f"arm_points {tuple(arm_points.shape)} do not match states {tuple(states.shape)}")
+        arm = _draw_arm(arm_points.reshape(-1, *arm_points.shape[-2:]).to(torch.float32), camera, size, grid)
+        img = img + (1 - disc[:, None]) * arm[:, None]  # the links under the disc
     for axis in range(3):  # paint the three axes over the disc (3 iterations, whole batch each)
         alpha = lines[:, axis, None]
         img = img * (1 - alpha) + alpha * colours[axis][None, :, None, None]
     return img.reshape(*lead, 3, size, size)
 
 
-def draw_action_maps_per_rollout(states: torch.Tensor, cameras: list[PinholeCamera], size: int | None = None) -> torch.Tensor:
+def draw_action_maps_per_rollout(states: torch.Tensor, cameras: list[PinholeCamera], size: int | None = None,
+                                 arm_points: torch.Tensor | None = None) -> torch.Tensor:
     """Action maps for a batch whose rollouts may see different cameras (tasks of other scenes):
-    states (B, ..., 7), cameras[b] the camera of rollout b. One batched draw per distinct camera."""
+    states (B, ..., 7), cameras[b] the camera of rollout b, arm_points (B, ..., P, 3) or None.
+    One batched draw per distinct camera."""
     if len(cameras) != states.shape[0]:
         raise ValueError(f"{len(cameras)} cameras for a batch of {states.shape[0]} rollouts")
     size = int(size or cameras[0].image_size)
@@ -83,7 +112,8 @@ def draw_action_maps_per_rollout(states: torch.Tensor, cameras: list[PinholeCame
     for i, cam in enumerate(cameras):
         groups.setdefault(id(cam), []).append(i)
     for idx in groups.values():
-        out[idx] = draw_action_maps(states[idx].float(), cameras[idx[0]], size=size)
+        out[idx] = draw_action_maps(states[idx].float(), cameras[idx[0]], size=size,
+                                    arm_points=None if arm_points is None else arm_points[idx])
     return out
 
 
