@@ -110,7 +110,8 @@ def placement_contexts(contract, numbers: list[int], camera: str) -> list:
         frame = restore(env, start)
         image = torch.from_numpy(env.render([camera])[camera]).permute(2, 0, 1).contiguous()
         out.append(Context(task_id=start.task_id, instruction=instruction, frame=image,
-                           proprio=torch.as_tensor(frame.proprio, dtype=torch.float32)))
+                           proprio=torch.as_tensor(frame.proprio, dtype=torch.float32),
+                           joint_pos=torch.as_tensor(frame.joint_pos, dtype=torch.float64)))
     return out
 
 

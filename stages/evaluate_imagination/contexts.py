@@ -39,6 +39,7 @@ def start_frame(job: StartJob) -> dict:
     env = cached_env(c.suite, job.start.task_id, c.cameras, c.image_size, render=True)
     frame = restore(env, job.start)
     return {"start": job.start, "image": env.render([c.cameras[0]])[c.cameras[0]], "proprio": frame.proprio,
+            "joint_pos": frame.joint_pos,
             "instruction": env.instruction}
 
 
@@ -81,7 +82,8 @@ def build_contexts(cfg, contract: TaskContract, held: list[Path]) -> tuple[list[
                              ray_address=cfg.ray_address, progress=cfg.progress, unit="ctx"),
                     key=lambda r: (r["start"].task_id, r["start"].init_state)):
         ctx = Context(task_id=r["start"].task_id, instruction=r["instruction"],
-                      frame=torch.from_numpy(r["image"]).permute(2, 0, 1).contiguous(), proprio=torch.from_numpy(r["proprio"]))
+                      frame=torch.from_numpy(r["image"]).permute(2, 0, 1).contiguous(), proprio=torch.from_numpy(r["proprio"]),
+                      joint_pos=torch.from_numpy(r["joint_pos"]))
         out.append(PairedContext(r["start"], ctx, "init"))
     per_task: dict[int, int] = {}
     episodes = []

@@ -42,7 +42,7 @@ def recognition_by_lead(model, encoder, sims: dict, episodes, eta: float, stride
         starts = [end - h for h in usable]
         n_chunks = -(-(max(usable) + after) // sim.model.chunk)
         frames = replay_from_steps(sim, imgs, torch.from_numpy(ep.proprio), torch.from_numpy(ep.actions), starts,
-                                   n_chunks, generator)
+                                   n_chunks, generator, torch.from_numpy(ep.joint_pos))
         stop = min(end + after, ep.length)  # scored up to this step, real and imagined alike
         steps = np.asarray(check_steps(stop + 1, stride))
         real = model.score_prefixes(imgs[: stop + 1], ep.meta.instruction, steps, encoder).numpy()

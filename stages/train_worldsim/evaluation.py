@@ -18,15 +18,16 @@ from worldenv_core.imagination.recording import imagined_replay
 from worldenv_core.viz import montage_video
 
 
-def fidelity_by_horizon(cfg, model, kinematics, cameras, held_eps, detail_gate: float) -> tuple[dict, list]:
-    """horizon -> metrics averaged over all starts of all held-out tasks; side-by-side videos."""
+def fidelity_by_horizon(cfg, model, kinematics, cameras, held_eps, detail_gate: float, arms=None) -> tuple[dict, list]:
+    """horizon -> metrics averaged over all starts of all held-out tasks; side-by-side videos. `arms`: task id ->
+    `SerialArm`, for a model whose maps draw the arm."""
     by_task = defaultdict(list)
     for ep in held_eps:
         by_task[ep.meta.task_id].append(ep)
     per_task, videos = [], []
     g = torch.Generator().manual_seed(cfg.seed)
     for tid, eps in sorted(by_task.items()):
-        sim = ImaginedSimulator(model, kinematics, cameras[tid], detail_gate=detail_gate)
+        sim = ImaginedSimulator(model, kinematics, cameras[tid], detail_gate=detail_gate, arm=(arms or {}).get(tid))
         out = open_loop_fidelity(sim, eps, tuple(cfg.fidelity.horizons), cfg.fidelity.starts_per_episode,
                                  camera=cfg.camera, generator=g)
         per_task.append(out["horizons"])
@@ -40,14 +41,14 @@ def fidelity_by_horizon(cfg, model, kinematics, cameras, held_eps, detail_gate: 
     return fidelity, videos
 
 
-def write_replays(model, kinematics, cameras, episodes, out_dir: Path, extra: dict, seed: int) -> list[Path]:
+def write_replays(model, kinematics, cameras, episodes, out_dir: Path, extra: dict, seed: int, arms=None) -> list[Path]:
     """Held-out episodes replayed open loop by the world model from their first frame, each written
     as an imagined episode with the real one beside it under `/real` (Foxglove:
     foxglove/imagined_vs_real.json shows both)."""
     g = torch.Generator().manual_seed(seed + 1)  # its own noise: the fidelity figures stay as they were
     paths = []
     for i, ep in enumerate(episodes):
-        sim = ImaginedSimulator(model, kinematics, cameras[ep.meta.task_id])
+        sim = ImaginedSimulator(model, kinematics, cameras[ep.meta.task_id], arm=(arms or {}).get(ep.meta.task_id))
         (frames, proprio), = replay_from_start(sim, [ep], camera=ep.meta.cameras[0], generator=g, with_proprio=True)
         imagined = imagined_replay(ep, frames, proprio, extra)
         paths.append(write_imagined_episode(out_dir / f"heldout_{i:02d}_task{ep.meta.task_id:02d}.mcap", imagined,
@@ -62,17 +63,17 @@ def _weighted_mean(values_weights) -> float:
     return sum(v * w for v, w in pairs) / sum(w for _, w in pairs) if pairs else float("nan")
 
 
-def evaluate_fidelity(cfg, model, kinematics, cameras, held_eps, work: Path, baseline=None) -> dict:
+def evaluate_fidelity(cfg, model, kinematics, cameras, held_eps, work: Path, baseline=None, arms=None) -> dict:
     """Open-loop fidelity on held-out episodes (model vs copy-last-frame) and kinematics error.
     With detail transfer on, the model's plain decoding is measured too (`plain_psnr/ssim`);
     `baseline` (the model a fine-tuning started from) is measured on the same starts
     (`start_psnr/ssim`)."""
     model.eval()
-    fidelity, videos = fidelity_by_horizon(cfg, model, kinematics, cameras, held_eps, model.detail_gate)
+    fidelity, videos = fidelity_by_horizon(cfg, model, kinematics, cameras, held_eps, model.detail_gate, arms)
     extra = [("plain", model, 0.0)] if model.detail_gate > 0 else []
     extra += [("start", baseline, baseline.detail_gate)] if baseline is not None else []
     for name, other, gate in extra:
-        theirs, _ = fidelity_by_horizon(cfg, other.eval(), kinematics, cameras, held_eps, gate)
+        theirs, _ = fidelity_by_horizon(cfg, other.eval(), kinematics, cameras, held_eps, gate, arms)
         for h, v in fidelity.items():
             v.update({f"{name}_{key}": theirs[h][f"model_{key}"] for key in
                       ("psnr", "ssim", "ssim_moving", "ssim_gripper", "psnr_gripper") if f"model_{key}" in theirs[h]})

@@ -28,6 +28,7 @@ from stages.train_worldsim.training import (ae_phase, episode_chunks, flow_phase
                                             rollout_phase, snapshots, with_refiner)
 from worldenv_core.contract import TaskContract
 from worldenv_core.data.selection import POLICY_COLLECTIONS, collected_episodes, episode_key, load_split
+from worldenv_core.kinematics.arm import SerialArm
 from worldenv_core.kinematics.camera import PinholeCamera
 from worldenv_core.kinematics.next_state import NextStateModel
 from worldenv_core.manifest import StageRun
@@ -90,16 +91,19 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"flow.ema must be in [0, 1), got {cfg.flow.ema}")
 
 
-def task_cameras(contract: TaskContract, camera: str, task_ids: list[int]) -> dict[int, PinholeCamera]:
-    """Each task's camera as the simulator has it (fixtures differ between scenes, cameras may too)."""
+def task_scenes(contract: TaskContract, camera: str, task_ids: list[int]) -> tuple[dict[int, PinholeCamera],
+                                                                                  dict[int, SerialArm]]:
+    """Each task's camera and arm as the simulator has them (fixtures differ between scenes, cameras and
+    the robot's mount may too)."""
     from worldenv_core.envs.libero_env import LiberoEnv
 
-    out = {}
+    cameras, arms = {}, {}
     for tid in task_ids:
         with LiberoEnv(contract.suite, tid, cameras=(), render=False) as env:
-            env.reset(init_state=0)
-            out[tid] = PinholeCamera.from_sim(env.sim, camera, contract.image_size)
-    return out
+            frame = env.reset(init_state=0)
+            cameras[tid] = PinholeCamera.from_sim(env.sim, camera, contract.image_size)
+            arms[tid] = SerialArm.from_env(env, frame)
+    return cameras, arms
 
 
 def run(cfg: DictConfig) -> dict:
@@ -138,16 +142,21 @@ def run(cfg: DictConfig) -> dict:
         stage.lock(work)  # one run at a time trains into a work dir
         if base:  # its camera models and kinematics are part of what it learned
             cameras = {int(t): PinholeCamera.from_dict(c) for t, c in base_meta["cameras"].items()}
+            arms = {int(t): SerialArm.from_dict(a) for t, a in (base_meta.get("arms") or {}).items()}
             kinematics = NextStateModel(**base_meta["kinematics"])
         else:
-            cameras = task_cameras(contract, cfg.camera, sorted({ep.meta.task_id for ep in episodes + held_eps}))
+            cameras, arms = task_scenes(contract, cfg.camera, sorted({ep.meta.task_id for ep in episodes + held_eps}))
             kinematics = NextStateModel.fit(episodes)
             log.info("kinematics fitted on %d episodes: %s", len(episodes), kinematics)
 
         model_cfg = read_config(base)["model"] if base else OmegaConf.to_container(cfg.worldsim, resolve=True)
         start_model = base_model
-        if cfg.fresh_width:  # a new flow network on the model's autoencoder: its open-loop steps start from zero
+        if cfg.fresh_width:  # a new flow network on the model's autoencoder: its open-loop steps start from zero,
+            # conditioned on the maps this run's config asks for (the arm's links or not)
+            model_cfg = {**model_cfg, "arm_map": bool(cfg.worldsim.arm_map)}
             model_cfg, start_model = fresh_velocity(base_model, model_cfg, cfg.fresh_width, cfg.seed)
+        if model_cfg.get("arm_map") and set(arms) != set(cameras):
+            arms = scene_arms(cfg, contract, pack, cameras)
         if cfg.refine.steps:  # an arm refiner after the decoder, everything else the starting model's
             model_cfg, start_model = with_refiner(start_model, model_cfg, cfg.refine.width, cfg.seed)
         model = (copy.deepcopy(start_model) if base else instantiate(model_cfg, _convert_="all")).to(device)
@@ -159,11 +168,12 @@ def run(cfg: DictConfig) -> dict:
         chunks_of = ((lambda ahead: pack.chunks(model, ahead)) if packed else  # noqa: E731
                      (lambda ahead: episode_chunks(model, episodes, device, fresh=False, chunks_ahead=ahead)))
         if cfg.minutes:  # planned from timed steps on copies, so the run itself starts from the untouched model
-            cfg.rollout.steps = planned_total(work, cfg.minutes, lambda s: _time_rollout(model, ema, chunks_of, cameras,
+            cfg.rollout.steps = planned_total(work, cfg.minutes, lambda s: _time_rollout(model, ema, chunks_of, cameras, arms,
                                                                                         cfg, device, s))
         prior = 0 if cfg.fresh_width or not base else int(base_meta.get("rollout_steps") or 0)
         meta = {"kind": "worldsim", **contract.meta(), "camera": cfg.camera, "kinematics": kinematics.to_dict(),
-                "cameras": {str(t): c.to_dict() for t, c in cameras.items()}, "episodes": len(episodes),
+                "cameras": {str(t): c.to_dict() for t, c in cameras.items()},
+                **({"arms": {str(t): a.to_dict() for t, a in arms.items()}} if arms else {}), "episodes": len(episodes),
                 "expert_only": bool(cfg.expert_only), "policy_collections": cfg.policy_collections, "held_out": held,
                 "rollout_steps": prior + int(cfg.rollout.steps),
                 **({"refine_steps": int((base_meta or {}).get("refine_steps") or 0) + int(cfg.refine.steps)}
@@ -180,12 +190,12 @@ def run(cfg: DictConfig) -> dict:
             ema.load_state_dict(trainer.extra["ema"])
         frames_of = lambda: torch.cat([torch.from_numpy(ep.images[cfg.camera]) for ep in episodes])  # noqa: E731
         phases = [] if base else [ae_phase(model, optimizers["ae"], frames_of, cfg, device),
-                                  flow_phase(model, ema, optimizers["flow"], episodes, cameras, cfg, device)]
+                                  flow_phase(model, ema, optimizers["flow"], episodes, cameras, cfg, device, arms)]
         if cfg.rollout.steps:
-            phases.append(rollout_phase(model, ema, optimizers["flow"], chunks_of, cameras, cfg, device))
+            phases.append(rollout_phase(model, ema, optimizers["flow"], chunks_of, cameras, cfg, device, arms))
         if cfg.refine.steps:  # after the open-loop phase: the refiner learns to redraw what that flow model imagines
             phases.append(refine_phase(model, ema, optimizers["refine"], lambda ahead: episode_chunks(
-                model, episodes, device, fresh=False, chunks_ahead=ahead, frames=True), cameras, cfg, device))
+                model, episodes, device, fresh=False, chunks_ahead=ahead, frames=True), cameras, cfg, device, arms))
         log.info("training on %d episodes (%d held out): %s on %s; work dir %s", len(episodes), len(held),
                  " + ".join(f"{p.steps} {p.name}" for p in phases), device, work)
         trainer.fit(phases, after_step=snapshots(work, ema, model_cfg, meta, prior, cfg.rollout.steps, cfg.snapshots),
@@ -195,18 +205,30 @@ def run(cfg: DictConfig) -> dict:
         final = trainer.save_final(work / "worldsim", model=ema, rollout_steps=prior + opened)
         if trainer.stopped_early:
             stage.not_recorded = f"the deadline (minutes={cfg.minutes}) came at step {trainer.step}; the same command goes on"
-        report = evaluate_fidelity(cfg, ema, kinematics, cameras, held_eps, work, baseline=base_model) if held_eps else {}
+        report = (evaluate_fidelity(cfg, ema, kinematics, cameras, held_eps, work, baseline=base_model, arms=arms)
+                  if held_eps else {})
         trainer.tracker.log({f"{k}_h{h}": v[k] for h, v in report.get("fidelity", {}).items()
                              for k in ("model_psnr", "model_ssim", "copy_psnr", "copy_ssim")}, trainer.step, group="eval")
         trainer.finish(stage, final, f"train_worldsim {contract.name}")  # closes the tracker: after the eval curves
-        record_fidelity(stage, work, ema, kinematics, cameras, held_eps, final, cfg)
+        record_fidelity(stage, work, ema, kinematics, cameras, held_eps, final, cfg, arms)
         stage.metrics.update({"episodes": len(episodes), "held_out": len(held), "steps": trainer.step,
                               "train_wall_s": round(trainer.wall_s, 1), "device": str(device), **report})
         log.info("world simulator saved to %s; metrics %s", final, json.dumps(stage.metrics))
     return stage.metrics
 
 
-def record_fidelity(stage, work, ema, kinematics, cameras, held_eps, final, cfg) -> None:
+def scene_arms(cfg, contract: TaskContract, pack, cameras: dict) -> dict[int, SerialArm]:
+    """Each task's arm for a model whose maps draw it, where the starting model kept none: from the latent
+    pack on a GPU host (which has no simulator), else from the simulator."""
+    if pack is not None:
+        if not pack.arms or set(pack.arms) != set(cameras):
+            raise ConfigError(f"{cfg.latents_from} carries no arm for every task: write the pack again with this "
+                              "version (`latents_to=`) to train a model that draws the arm")
+        return {int(t): SerialArm.from_dict(a) for t, a in pack.arms.items()}
+    return task_scenes(contract, cfg.camera, sorted(cameras))[1]
+
+
+def record_fidelity(stage, work, ema, kinematics, cameras, held_eps, final, cfg, arms=None) -> None:
     """The fidelity report, its videos and the held-out replays as the run's outputs; with no held-out
     episode here (a latent pack's run), where to measure it."""
     if not held_eps:
@@ -218,7 +240,7 @@ def record_fidelity(stage, work, ema, kinematics, cameras, held_eps, final, cfg)
     for video in sorted((work / "videos").glob("*.gif")):
         stage.add_output(video, kind="video")
     for replay in write_replays(ema, kinematics, cameras, held_eps[: cfg.fidelity.videos], work / "imagined",
-                                {"worldsim": str(final)}, cfg.seed):
+                                {"worldsim": str(final)}, cfg.seed, arms):
         stage.add_output(replay, kind="imagined")
 
 
@@ -226,7 +248,9 @@ def pack_latents(stage, cfg, model, base: str, base_meta: dict, episodes, keys: 
     """`latents_to=`: the model's open-loop training set (its held-out episodes left out) as a latent
     pack; nothing is trained, and nothing recorded (no later stage may take the export for a model)."""
     latents = [encode_episode_frames(model, ep.images[base_meta["camera"]]) for ep in episodes]
-    out = write_latent_pack(cfg.latents_to, latents, episodes, keys, base, base_meta["camera"], contract.meta())
+    arms = base_meta.get("arms") or {str(t): a.to_dict() for t, a in task_scenes(
+        contract, base_meta["camera"], sorted({ep.meta.task_id for ep in episodes}))[1].items()}  # for a model drawing the arm
+    out = write_latent_pack(cfg.latents_to, latents, episodes, keys, base, base_meta["camera"], contract.meta(), arms)
     stage.not_recorded = f"it exported the training set to {out}"
     stage.metrics.update({"latent_pack": str(out), "episodes": len(episodes), "frames": sum(len(z) for z in latents),
                           "pack_mib": round(out.stat().st_size / 2 ** 20, 1)})
@@ -235,9 +259,9 @@ def pack_latents(stage, cfg, model, base: str, base_meta: dict, episodes, keys: 
     return stage.metrics
 
 
-def _time_rollout(model, ema, chunks_of, cameras, cfg, device, seconds: float) -> int:
+def _time_rollout(model, ema, chunks_of, cameras, arms, cfg, device, seconds: float) -> int:
     """How many open-loop steps fit in `seconds`, timed on copies of the model and its EMA."""
     probe_model, probe_ema = copy.deepcopy(model), copy.deepcopy(ema)
     probe_opt = torch.optim.AdamW(probe_model.velocity.parameters(), lr=cfg.flow.lr)
-    probe = rollout_phase(probe_model, probe_ema, probe_opt, chunks_of, cameras, cfg, device)
+    probe = rollout_phase(probe_model, probe_ema, probe_opt, chunks_of, cameras, cfg, device, arms)
     return planned_steps(probe.step, iter(probe.batches(0)), seconds)

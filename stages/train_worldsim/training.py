@@ -13,15 +13,25 @@ from hydra.utils import instantiate
 
 from worldenv_core import distributed
 from worldenv_core.kinematics.action_map import draw_action_maps_per_rollout, gripper_mask
+from worldenv_core.kinematics.arm import SerialArm, skeletons
 from worldenv_core.kinematics.camera import PinholeCamera
 from worldenv_core.models.checkpoint import save_model
 from worldenv_core.models.worldsim_data import LatentChunks, encode_episode_frames
 from worldenv_core.training import Phase, batches, optimize, per_step, step_seed
 
 
-def _maps(proprio: torch.Tensor, task_ids, cameras: dict[int, PinholeCamera], size: int) -> torch.Tensor:
-    """Action maps for a batch whose items may come from tasks with different cameras."""
-    return draw_action_maps_per_rollout(proprio, [cameras[int(t)] for t in task_ids], size)
+def _maps(b: dict, steps: slice, model, cameras: dict[int, PinholeCamera], device,
+          arms: dict[int, SerialArm] | None = None) -> torch.Tensor:
+    """The action maps of a batch's `steps`, its items possibly from tasks with different cameras; for a
+    model whose maps draw the arm, with the links at the recorded joint angles."""
+    points = None
+    if model.arm_map:
+        if not arms or "joints" not in b:
+            raise ValueError("this world model draws the arm's links: training needs each task's arm and the "
+                             "episodes' joint angles (a latent pack written before they were kept has none)")
+        points = skeletons(b["joints"][:, steps].to(device), [arms[int(t)] for t in b["task_id"]]).float()
+    return draw_action_maps_per_rollout(b["proprio"][:, steps].to(device), [cameras[int(t)] for t in b["task_id"]],
+                                        model.map_size, points)
 
 
 def ae_phase(model, optimizer, frames_of, cfg, device) -> Phase:
@@ -43,7 +53,7 @@ def ae_phase(model, optimizer, frames_of, cfg, device) -> Phase:
     return Phase("autoencoder", cfg.ae.steps, draw, step)
 
 
-def flow_phase(model, ema, optimizer, episodes, cameras, cfg, device) -> Phase:
+def flow_phase(model, ema, optimizer, episodes, cameras, cfg, device, arms=None) -> Phase:
     """Phase 2: the latent flow model on chunks of once-encoded frames, with EMA weights. Entering it
     fresh sets the latent scales and starts the EMA from the trained autoencoder."""
     def draw(start: int):
@@ -55,7 +65,7 @@ def flow_phase(model, ema, optimizer, episodes, cameras, cfg, device) -> Phase:
     def step(b) -> dict:
         memory = b["memory"].to(device) / model.latent_scale
         memory = memory + cfg.flow.memory_noise * torch.randn_like(memory)
-        maps = _maps(b["proprio"].to(device), b["task_id"], cameras, model.map_size)  # drawn where the model runs
+        maps = _maps(b, slice(None), model, cameras, device, arms)  # drawn where the model runs
         loss = model.flow_loss(memory, maps, b["target"].to(device) / model.latent_scale, b["actions"].to(device),
                                b["valid"].to(device))
         optimize(loss, optimizer, clip=1.0, params=list(model.velocity.parameters()))
@@ -64,7 +74,7 @@ def flow_phase(model, ema, optimizer, episodes, cameras, cfg, device) -> Phase:
     return Phase("flow", cfg.flow.steps, draw, step)
 
 
-def rollout_phase(model, ema, optimizer, chunks_of, cameras, cfg, device) -> Phase:
+def rollout_phase(model, ema, optimizer, chunks_of, cameras, cfg, device, arms=None) -> Phase:
     """Phase 3, open-loop training. Imagined rollouts start from real frames and then feed on their
     own predictions, which teacher forcing never shows the model: the arm blurs a little per chunk
     and the blur compounds. Here the model first imagines `depth` chunks of the recorded actions
@@ -84,7 +94,7 @@ def rollout_phase(model, ema, optimizer, chunks_of, cameras, cfg, device) -> Pha
         g = torch.Generator().manual_seed(step_seed(cfg.seed + 2, done))
         depth = int(torch.randint(ahead, (1,), generator=g))
         k, n = model.chunk, (depth + 1) * model.chunk
-        maps = _maps(b["proprio"][:, :n].to(device), b["task_id"], cameras, model.map_size)
+        maps = _maps(b, slice(0, n), model, cameras, device, arms)
         actions = b["actions"][:, :n].float().to(device)
         if depth == 0:  # teacher forcing: the recorded memory (items carry no "past" when rollout.chunks = 0)
             memory = b["memory"].to(device) / model.latent_scale
@@ -100,7 +110,7 @@ def rollout_phase(model, ema, optimizer, chunks_of, cameras, cfg, device) -> Pha
     return Phase("rollout", cfg.rollout.steps, draw, step)
 
 
-def refine_phase(model, ema, optimizer, chunks_of, cameras, cfg, device) -> Phase:
+def refine_phase(model, ema, optimizer, chunks_of, cameras, cfg, device, arms=None) -> Phase:
     """Phase 4, the arm refiner (`WorldSimulator.refiner`) on what imagination decodes. The flow model
     and the autoencoder stay as they are; each step imagines `depth` chunks of the recorded actions
     (0..`refine.chunks`, drawn per step; 0 decodes the real latents), decodes `refine.frames` frames of
@@ -118,7 +128,7 @@ def refine_phase(model, ema, optimizer, chunks_of, cameras, cfg, device) -> Phas
         depth = int(torch.randint(cfg.refine.chunks + 1, (1,), generator=g))
         k = model.chunk
         n = max(depth, 1) * k
-        maps = _maps(b["proprio"][:, :n].to(device), b["task_id"], cameras, model.map_size)
+        maps = _maps(b, slice(0, n), model, cameras, device, arms)
         with torch.no_grad():
             if depth == 0:
                 z = b["target"][:, :k].to(device) / model.latent_scale

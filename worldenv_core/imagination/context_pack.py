@@ -56,6 +56,8 @@ def write_context_pack(path: str | Path, contexts: list[Context], keys: list[str
                "proprio": torch.stack([torch.as_tensor(c.proprio, dtype=torch.float64) for c in contexts]),
                "task_ids": torch.tensor([c.task_id for c in contexts]),
                "embeddings": encoder(instructions).float().contiguous()}
+    if all(c.joint_pos is not None for c in contexts):  # what a world model that draws the arm starts from
+        tensors["joint_pos"] = torch.stack([torch.as_tensor(c.joint_pos, dtype=torch.float64) for c in contexts])
     lengths = [0 if c.history is None else len(c.history) for c in contexts]
     if any(lengths):  # mid-episode contexts' recorded pasts for the reward model, concatenated
         tensors["history"] = torch.cat([c.history for c in contexts if c.history is not None]).contiguous()
@@ -73,8 +75,10 @@ def read_context_pack(path: str | Path) -> ContextPack:
     texts = json.loads(meta["context_instructions"])
     lengths = t["history_lengths"].tolist() if "history_lengths" in t else [0] * len(texts)
     pasts = iter(t["history"].split([k for k in lengths if k])) if any(lengths) else iter(())
-    contexts = [Context(task_id=int(tid), instruction=s, frame=fr, proprio=p, history=next(pasts) if k else None)
-                for tid, s, fr, p, k in zip(t["task_ids"].tolist(), texts, t["frames"], t["proprio"], lengths)]
+    joints = t["joint_pos"] if "joint_pos" in t else [None] * len(texts)
+    contexts = [Context(task_id=int(tid), instruction=s, frame=fr, proprio=p, history=next(pasts) if k else None,
+                        joint_pos=q)
+                for tid, s, fr, p, k, q in zip(t["task_ids"].tolist(), texts, t["frames"], t["proprio"], lengths, joints)]
     table = dict(zip(json.loads(meta["instructions"]), t["embeddings"]))
     return ContextPack(contexts, json.loads(meta["keys"]), PackedInstructions(table), meta["camera"],
                        json.loads(meta.get("task", "{}")), json.loads(meta.get("settings", "{}")))

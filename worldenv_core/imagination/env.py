@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from worldenv_core.imagination.simulator import ImaginedSimulator
+from worldenv_core.imagination.simulator import ImaginedSimulator, checkpoint_arms
 from worldenv_core.kinematics.camera import PinholeCamera
 from worldenv_core.rl.termination import check_eta
 
@@ -31,6 +31,7 @@ class Context:
     # keyframe at 85 % on, the libero_spatial reflector recognised 6 of 10 held-out demos' successes 8 steps after
     # them, with the recorded prefix 9 (docs/notebook/verdict_fidelity.md). The world model never sees it.
     history: torch.Tensor | None = None
+    joint_pos: torch.Tensor | None = None  # (7,): the arm's joint angles at o_1 (a world model that draws the arm needs them)
 
     @classmethod
     def from_episode(cls, ep, camera: str, t: int = 0, history_every: int = 0) -> "Context":
@@ -39,7 +40,8 @@ class Context:
         images = ep.images[camera]
         return cls(task_id=ep.meta.task_id, instruction=ep.meta.instruction,
                    frame=torch.from_numpy(images[t]).permute(2, 0, 1).contiguous(),
-                   proprio=torch.from_numpy(ep.proprio[t]), history=history_frames(images, t, history_every))
+                   proprio=torch.from_numpy(ep.proprio[t]), history=history_frames(images, t, history_every),
+                   joint_pos=None if getattr(ep, "joint_pos", None) is None else torch.from_numpy(ep.joint_pos[t]))
 
 
 def history_frames(images: np.ndarray, t: int, every: int) -> torch.Tensor | None:
@@ -98,12 +100,14 @@ class StepResult:
 
 class ImaginedEnv:
     def __init__(self, sim: ImaginedSimulator, cameras: dict[int, PinholeCamera], reflector, encoder, eta: float,
-                 horizon: int):
+                 horizon: int, arms: dict | None = None):
         """sim: the world simulator + kinematics; cameras: task id -> the world model's camera in that
         task's scene; reflector: a reward model (the trained `Reflector`, or the VLM yes/no one)
         watching the same camera; encoder: instruction
-        strings -> embeddings (the frozen MiniLM)."""
+        strings -> embeddings (the frozen MiniLM); arms: task id -> the arm of that scene (`SerialArm`), for a
+        world model whose maps draw it."""
         self.sim, self.cameras, self.reflector, self.encoder = sim, cameras, reflector.eval(), encoder
+        self.arms = arms or {}
         self.eta, self.horizon, self.chunk = check_eta(eta), int(horizon), sim.model.chunk
         self.scorer = None  # the reward model's incremental scorer of the current rollouts
         self.state: StepResult | None = None
@@ -116,7 +120,13 @@ class ImaginedEnv:
         device = self.sim.device
         frames = torch.stack([c.frame for c in contexts]).to(device)
         proprio = torch.stack([torch.as_tensor(c.proprio) for c in contexts]).double().to(device)
-        self.sim.reset(frames[:, None], proprio, cameras=[self.cameras[c.task_id] for c in contexts])
+        joints = None
+        if self.sim.model.arm_map:
+            if any(c.joint_pos is None for c in contexts):
+                raise ValueError("this world model draws the arm's links: every context needs its joint angles (joint_pos)")
+            joints = torch.stack([torch.as_tensor(c.joint_pos, dtype=torch.float64) for c in contexts]).to(device)
+        self.sim.reset(frames[:, None], proprio, cameras=[self.cameras[c.task_id] for c in contexts], joints=joints,
+                       arms=[self.arms[c.task_id] for c in contexts] if self.sim.model.arm_map else None)
         self.scorer = self.reflector.scorer([c.instruction for c in contexts], self.encoder)
         if any(c.history is not None for c in contexts) and hasattr(self.scorer, "add_history"):
             self.scorer.add_history([None if c.history is None else c.history.to(device) for c in contexts])
@@ -175,9 +185,10 @@ def build_imagined_env(worldsim_path: str, reflector_path: str, eta: float, enco
     meta = read_config(worldsim_path)["meta"]
     cameras = {int(t): PinholeCamera.from_dict(c) for t, c in meta["cameras"].items()}
     sim = ImaginedSimulator.from_checkpoint(worldsim_path, min(cameras), sampling_steps, device, contract, sampler_noise)
+    arms = checkpoint_arms(meta, sim.model, worldsim_path)
     reflector, rmeta = load_checkpoint(reflector_path, "reflector", contract, device=str(device))
     if rmeta["camera"] != meta["camera"]:
         raise CheckpointError(f"the reflector watches {rmeta['camera']!r} but the world simulator imagines "
                               f"{meta['camera']!r}")
     check_horizon(horizon, int(rmeta.get("label_delay", 0)), sim.model.chunk)
-    return ImaginedEnv(sim, cameras, reflector, encoder, eta, horizon), meta["camera"]
+    return ImaginedEnv(sim, cameras, reflector, encoder, eta, horizon, arms), meta["camera"]

@@ -1,9 +1,11 @@
 """Imagined rollouts: the world simulator stepped chunk by chunk, batched over rollouts.
 
 `ImaginedSimulator` keeps, per rollout, the latent history (for the sparse memory), the current
-proprio state and the arm's last motion (for the kinematic model's momentum). `step(actions)`
-advances every rollout by one action chunk: kinematics gives s_{t+1..t+K}, the camera draws
-their action maps, the world model predicts the K latents. Pixels are decoded only on request.
+proprio state and the arm's last motion (for the kinematic model's momentum), and for a model
+whose maps draw the whole arm (`arm_map`) its joint angles. `step(actions)` advances every
+rollout by one action chunk: kinematics gives s_{t+1..t+K} (and the joints tracked onto them),
+the camera draws their action maps, the world model predicts the K latents. Pixels are decoded
+only on request.
 
 Detail transfer (the model's `detail_gate` > 0): the autoencoder blurs what it reconstructs (its SSIM
 ceiling is below copying the last frame), while the camera is fixed and most of the scene does
@@ -29,6 +31,7 @@ from dataclasses import dataclass
 import torch
 
 from worldenv_core.kinematics.action_map import draw_action_maps, draw_action_maps_per_rollout, gripper_mask
+from worldenv_core.kinematics.arm import SerialArm, skeletons, track_rollouts
 from worldenv_core.kinematics.camera import PinholeCamera
 from worldenv_core.kinematics.next_state import NextStateModel, observed_carry
 from worldenv_core.models.worldsim import WorldSimulator
@@ -40,12 +43,13 @@ class ChunkResult:
     latents: torch.Tensor  # (B, K, C, h, w)
     action_maps: torch.Tensor  # (B, K, 3, H, W)
     frames: torch.Tensor | None = None  # (B, K, 3, H, W) uint8 ("all") or (B, 1, 3, H, W) ("last")
+    joints: torch.Tensor | None = None  # (B, K, 7) the arm's tracked joint angles (a model with `arm_map`)
 
 
 class ImaginedSimulator:
     def __init__(self, model: WorldSimulator, kinematics: NextStateModel, camera: PinholeCamera,
                  sampling_steps: int | None = None, device: str | torch.device = "cpu", detail_gate: float | None = None,
-                 noise_scale: float | None = None):
+                 noise_scale: float | None = None, arm: SerialArm | None = None):
         if camera.image_size != model.image_size:
             raise ValueError(f"camera renders {camera.image_size} px but the world model makes {model.image_size} px")
         self.model = model.to(device).eval()
@@ -64,6 +68,9 @@ class ImaginedSimulator:
         self.proprio: torch.Tensor | None = None
         self.carry = None
         self.rollout_cameras: list[PinholeCamera] | None = None  # per rollout, when they differ
+        self.arm = arm  # the arm of `camera`'s scene (a model with `arm_map` draws its links)
+        self.rollout_arms: list[SerialArm] | None = None  # per rollout
+        self.joints: torch.Tensor | None = None  # (B, 7) the arm's current joint angles
 
     @classmethod
     def from_checkpoint(cls, path, task_id: int, sampling_steps: int | None = None, device="cpu",
@@ -75,25 +82,36 @@ class ImaginedSimulator:
         model, meta = load_checkpoint(path, "worldsim", contract)
         if str(task_id) not in meta["cameras"]:
             raise CheckpointError(f"world simulator {path} was trained on tasks {sorted(meta['cameras'])}, not task {task_id}")
+        arms = checkpoint_arms(meta, model, path)
         return cls(model, NextStateModel(**meta["kinematics"]), PinholeCamera.from_dict(meta["cameras"][str(task_id)]),
-                   sampling_steps=sampling_steps, device=device, noise_scale=noise_scale)
+                   sampling_steps=sampling_steps, device=device, noise_scale=noise_scale, arm=arms.get(task_id))
 
     @torch.no_grad()
     def reset(self, frames: torch.Tensor, proprio: torch.Tensor, prev_proprio: torch.Tensor | None = None,
-              cameras: list[PinholeCamera] | None = None) -> None:
+              cameras: list[PinholeCamera] | None = None, joints: torch.Tensor | None = None,
+              arms: list[SerialArm] | None = None) -> None:
         """frames (B, T0, 3, H, W) uint8: the real frames so far (T0 >= 1, the last is current);
         proprio (B, 7) the current state; prev_proprio (B, 7) the one before (momentum), if any;
-        cameras: one per rollout when the batch mixes tasks of different scenes (default: `camera`)."""
+        cameras: one per rollout when the batch mixes tasks of different scenes (default: `camera`);
+        joints (B, 7): the arm's joint angles now (needed by a model with `arm_map`), arms: one per
+        rollout, as cameras (default: `arm`)."""
         if frames.dim() != 5 or frames.shape[-1] != self.model.image_size:
             raise ValueError(f"frames must be (B, T, 3, {self.model.image_size}, {self.model.image_size}), got {tuple(frames.shape)}")
         if cameras is not None and any(c.image_size != self.model.image_size for c in cameras):
             raise ValueError(f"a rollout camera does not render {self.model.image_size} px")
         self.rollout_cameras = list(cameras) if cameras is not None else None
+        self.joints, self.rollout_arms = None, None
+        if self.model.arm_map:  # without joints it can only render (a step asks for them)
+            self.rollout_arms = list(arms) if arms is not None else [self.arm] * len(frames)
+            if len(self.rollout_arms) != len(frames) or any(a is None for a in self.rollout_arms):
+                raise ValueError("this world model draws the arm's links: reset needs each rollout's arm")
+            self.joints = None if joints is None else joints.to(self.device, torch.float64)
         self.latents = self.model.encode(frames.to(self.device))
         self.anchor_latent = self.latents[:, -1]
         self.proprio = proprio.to(self.device, torch.float64)
         if self.detail_gate > 0:  # the anchor is decoded as imagined frames are, its own map included
-            recon = self.render_plain(self.latents[:, -1:], self._maps(self.proprio[:, None]))[:, 0]
+            now = None if self.joints is None else self.joints[:, None]
+            recon = self.render_plain(self.latents[:, -1:], self._maps(self.proprio[:, None], now))[:, 0]
             self.anchor = (recon, frames[:, -1].to(self.device).float() / 255 - recon)
         self.carry = observed_carry(prev_proprio.to(self.device, torch.float64), self.proprio) if prev_proprio is not None else None
 
@@ -112,20 +130,31 @@ class ImaginedSimulator:
         if b != self.latents.shape[0] or k != self.model.chunk:
             raise ValueError(f"actions must be ({self.latents.shape[0]}, {self.model.chunk}, 7), got {tuple(actions.shape)}")
         actions = actions.to(self.device)
+        if self.model.arm_map and self.joints is None:
+            raise ValueError("this world model draws the arm's links: reset needs the rollouts' joint angles "
+                             "(a context's joint_pos) before a step")
         states, self.carry = self.kinematics.rollout(self.proprio, actions.double(), self.carry)
-        maps = self._maps(states)
+        joints = None
+        if self.joints is not None:  # the links follow the imagined gripper
+            joints = track_rollouts(self.rollout_arms, self.joints, states)
+            self.joints = joints[:, -1]
+        maps = self._maps(states, joints)
         z = self.model.next_chunk(self.latents, self.anchor_latent, maps, actions.float(), steps=self.steps,
                                   generator=generator, noise_scale=self.noise)
         self.latents = torch.cat([self.latents, z], dim=1)
         self.proprio = states[:, -1]
         kept = {"all": slice(None), "last": slice(-1, None), "none": None}[decode]
         frames = (self.render(z[:, kept], maps[:, kept]) * 255).round().to(torch.uint8) if kept is not None else None
-        return ChunkResult(proprio=states.float(), latents=z, action_maps=maps, frames=frames)
+        return ChunkResult(proprio=states.float(), latents=z, action_maps=maps, frames=frames,
+                           joints=None if joints is None else joints.float())
 
-    def _maps(self, states: torch.Tensor) -> torch.Tensor:
-        """(B, n, 7) states -> (B, n, 3, S, S) action maps, each rollout through its own camera."""
-        return (draw_action_maps(states.float(), self.camera, size=self.model.map_size) if self.rollout_cameras is None
-                else draw_action_maps_per_rollout(states, self.rollout_cameras, self.model.map_size))
+    def _maps(self, states: torch.Tensor, joints: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, n, 7) states (and (B, n, 7) joints, for a model that draws the arm) -> (B, n, 3, S, S)
+        action maps, each rollout through its own camera."""
+        points = skeletons(joints, self.rollout_arms).float() if joints is not None else None
+        return (draw_action_maps(states.float(), self.camera, size=self.model.map_size, arm_points=points)
+                if self.rollout_cameras is None
+                else draw_action_maps_per_rollout(states, self.rollout_cameras, self.model.map_size, points))
 
     def render_plain(self, z: torch.Tensor, maps: torch.Tensor | None = None) -> torch.Tensor:
         """(B, n, C, h, w) latents -> (B, n, 3, H, W) in [0, 1], decoded (and, given the frames' action
@@ -143,6 +172,18 @@ class ImaginedSimulator:
         change = torch.nn.functional.max_pool2d(change, 5, stride=1, padding=2).view(*x.shape[:2], 1, *x.shape[3:])
         keep = (1 - change / self.detail_gate).clamp(min=0)
         return (x + keep * detail).clamp(0, 1)
+
+
+def checkpoint_arms(meta: dict, model: WorldSimulator, path) -> dict[int, SerialArm]:
+    """Each task's arm from a world model's metadata ({} for a model saved before arms were kept);
+    a model that draws the arm must have them."""
+    from worldenv_core.models.checkpoint import CheckpointError
+
+    arms = {int(t): SerialArm.from_dict(a) for t, a in (meta.get("arms") or {}).items()}
+    if model.arm_map and set(arms) != {int(t) for t in meta["cameras"]}:
+        raise CheckpointError(f"world simulator {path} draws the arm's links but its metadata lacks the arms of tasks "
+                              f"{sorted({int(t) for t in meta['cameras']} - set(arms))}")
+    return arms
 
 
 @torch.no_grad()
@@ -178,7 +219,8 @@ def open_loop_fidelity(sim: ImaginedSimulator, episodes, horizons=(8, 16, 32, 64
         if last_start < 1:
             continue
         starts = torch.linspace(1, last_start, starts_per_episode).round().long().unique().tolist()
-        frames = replay_from_steps(sim, imgs, proprio, actions, starts, n_chunks, generator)
+        frames = replay_from_steps(sim, imgs, proprio, actions, starts, n_chunks, generator,
+                                   torch.from_numpy(ep.joint_pos))
         for h in horizons:
             real = torch.stack([imgs[s + h] for s in starts]).float() / 255
             fake = frames[:, h - 1].float() / 255
@@ -232,7 +274,8 @@ def replay_from_start(sim: ImaginedSimulator, episodes, camera: str = "agentview
         acts[i, : len(a)] = a
         acts[i, len(a):] = a[-1]  # a finished episode holds its last command while the others go on
     first = torch.stack([torch.from_numpy(ep.images[camera][:1]).permute(0, 3, 1, 2) for ep in episodes])
-    sim.reset(first, torch.stack([torch.from_numpy(ep.proprio[0]) for ep in episodes]).double())
+    sim.reset(first, torch.stack([torch.from_numpy(ep.proprio[0]) for ep in episodes]).double(),
+              joints=torch.stack([torch.from_numpy(ep.joint_pos[0]) for ep in episodes]))
     start = sim.proprio.float().cpu()[:, None]
     outs = [sim.step(acts[:, c * k:(c + 1) * k], generator=generator) for c in range(n_chunks)]
     frames = torch.cat([first, *(o.frames for o in outs)], dim=1)
@@ -257,11 +300,13 @@ def rendered_copy(sim: ImaginedSimulator, imgs: torch.Tensor, block: int = 64) -
 
 @torch.no_grad()
 def replay_from_steps(sim: ImaginedSimulator, imgs: torch.Tensor, proprio: torch.Tensor, actions: torch.Tensor,
-                      starts: list[int], n_chunks: int, generator: torch.Generator | None = None) -> torch.Tensor:
+                      starts: list[int], n_chunks: int, generator: torch.Generator | None = None,
+                      joints: torch.Tensor | None = None) -> torch.Tensor:
     """One episode imagined from several of its steps at once (one batch): from each start s >= 1 the
     real frames up to s (the model's history), the state at s and at s - 1, then `n_chunks` chunks of
     the recorded actions from s, open loop (past the episode's end its last command is held).
-    imgs (T+1, 3, H, W) uint8, proprio (T+1, 7), actions (T, 7) -> (len(starts), n_chunks * K, 3, H, W) uint8."""
+    imgs (T+1, 3, H, W) uint8, proprio (T+1, 7), actions (T, 7), joints (T+1, 7) (what a model that
+    draws the arm starts from) -> (len(starts), n_chunks * K, 3, H, W) uint8."""
     if min(starts) < 1:
         raise ValueError(f"a start needs the state before it: starts must be >= 1, got {min(starts)}")
     k = sim.model.chunk
@@ -269,7 +314,8 @@ def replay_from_steps(sim: ImaginedSimulator, imgs: torch.Tensor, proprio: torch
     acts = torch.cat([acts, acts[-1:].expand(n_chunks * k, -1)])
     batch = torch.stack([acts[s:s + n_chunks * k] for s in starts]).view(len(starts), n_chunks, k, -1)
     proprio = proprio.double()
-    sim.reset(_histories(imgs, starts, sim.model.history), proprio[starts], proprio[[s - 1 for s in starts]])
+    sim.reset(_histories(imgs, starts, sim.model.history), proprio[starts], proprio[[s - 1 for s in starts]],
+              joints=None if joints is None else joints[starts])
     return torch.cat([sim.step(batch[:, c], generator=generator).frames for c in range(n_chunks)], dim=1)
 
 

@@ -174,3 +174,29 @@ def track(arm: SerialArm, joints: torch.Tensor, states: torch.Tensor, damping: f
         q = q + (jac.transpose(1, 2) @ torch.linalg.solve(jjt, err[..., None]))[..., 0]
         out.append(q)
     return torch.stack(out, dim=1)
+
+
+def _by_arm(arms: list[SerialArm]) -> list[tuple[SerialArm, list[int]]]:
+    """Rollouts grouped by the arm they see (one batched computation per scene's arm)."""
+    groups: dict[int, tuple[SerialArm, list[int]]] = {}
+    for i, arm in enumerate(arms):
+        groups.setdefault(id(arm), (arm, []))[1].append(i)
+    return list(groups.values())
+
+
+def skeletons(joints: torch.Tensor, arms: list[SerialArm]) -> torch.Tensor:
+    """joints (B, ..., 7), arms[b] rollout b's arm -> (B, ..., P, 3) the skeletons to draw."""
+    if len(arms) != joints.shape[0]:
+        raise ValueError(f"{len(arms)} arms for a batch of {joints.shape[0]} rollouts")
+    out = torch.empty(*joints.shape[:-1], len(SKELETON), 3, dtype=torch.float64, device=joints.device)
+    for arm, idx in _by_arm(arms):
+        out[idx] = arm.points(joints[idx])
+    return out
+
+
+def track_rollouts(arms: list[SerialArm], joints: torch.Tensor, states: torch.Tensor) -> torch.Tensor:
+    """`track` for a batch whose rollouts may see different arms: joints (B, 7), states (B, n, 7) -> (B, n, 7)."""
+    out = torch.empty(*states.shape[:-1], ARM_JOINTS, dtype=torch.float64, device=states.device)
+    for arm, idx in _by_arm(arms):
+        out[idx] = track(arm, joints[idx], states[idx])
+    return out

@@ -5,7 +5,8 @@ neither the episodes nor the simulator (a rented GPU).
 Phase 3 keeps the autoencoder of the model it goes on from, so a training frame only ever enters
 it as that autoencoder's latent. The pack holds those latents (fp16, 2 KB a frame: 13 MB for
 libero_goal's 40 training demos, whose MCAP files are ~100 MB), each episode's proprio states,
-actions and task id, its key, the task contract, and the sha256 of the autoencoder that encoded it
+actions, joint angles and task id, its key, the task contract, each task's arm (for a model whose maps
+draw it), and the sha256 of the autoencoder that encoded it
 (a pack made by another model is refused). The model's held-out episodes are left out, as
 `init_from=` leaves them out. `train_worldsim init_from=<model> latents_to=<pack>` writes one."""
 
@@ -38,6 +39,7 @@ class PackedEpisode:
     proprio: np.ndarray  # (T + 1, proprio_dim)
     actions: np.ndarray  # (T, action_dim)
     meta: PackedMeta
+    joint_pos: np.ndarray | None = None  # (T + 1, 7); None in a pack written before joints were kept
 
     @property
     def length(self) -> int:
@@ -51,10 +53,12 @@ class LatentPack:
     keys: list[str]
     task: dict                   # the task contract's meta it was made under
     encoder_sha256: str
+    arms: dict | None = None     # task id -> `SerialArm.to_dict()` of its scene (None: an older pack)
 
     def every(self, n: int) -> "LatentPack":
         """Every n-th episode only (a data curve from one pack)."""
-        return LatentPack(self.latents[::n], self.episodes[::n], self.keys[::n], self.task, self.encoder_sha256)
+        return LatentPack(self.latents[::n], self.episodes[::n], self.keys[::n], self.task, self.encoder_sha256,
+                          self.arms)
 
     def chunks(self, model, chunks_ahead: int) -> LatentChunks:
         return LatentChunks(self.latents, self.episodes, model.memory_offsets, model.chunk, chunks_ahead)
@@ -73,7 +77,7 @@ def encoder_sha256(model_dir: str | Path) -> str:
 
 
 def write_latent_pack(path: str | Path, latents: list[torch.Tensor], episodes, keys: list[str],
-                      model_dir: str | Path, camera: str, task: dict) -> Path:
+                      model_dir: str | Path, camera: str, task: dict, arms: dict | None = None) -> Path:
     """Latents (T + 1, C, h, w) per episode, beside the episodes they came from, written to a
     temporary name and renamed when complete."""
     if not (len(latents) == len(episodes) == len(keys)) or not latents:
@@ -86,8 +90,10 @@ def write_latent_pack(path: str | Path, latents: list[torch.Tensor], episodes, k
         tensors[f"latents.{i}"] = z.to(torch.float16).contiguous()
         tensors[f"proprio.{i}"] = torch.from_numpy(np.ascontiguousarray(ep.proprio, dtype=np.float32))
         tensors[f"actions.{i}"] = torch.from_numpy(np.ascontiguousarray(ep.actions, dtype=np.float32))
+        tensors[f"joint_pos.{i}"] = torch.from_numpy(np.ascontiguousarray(ep.joint_pos, dtype=np.float64))
     meta = {"format": FORMAT, "keys": json.dumps(keys), "task_ids": json.dumps([int(ep.meta.task_id) for ep in episodes]),
-            "camera": camera, "encoder_sha256": encoder_sha256(model_dir), "task": json.dumps(task)}
+            "camera": camera, "encoder_sha256": encoder_sha256(model_dir), "task": json.dumps(task),
+            **({"arms": json.dumps({str(t): a for t, a in arms.items()})} if arms else {})}
     return write_pack(path, tensors, meta)
 
 
@@ -101,7 +107,10 @@ def read_latent_pack(path: str | Path, model_dir: str | Path) -> LatentPack:
                                   "this model's; pack again from this model")
         task_ids = json.loads(meta["task_ids"])
         latents = [f.get_tensor(f"latents.{i}").float() for i in range(len(task_ids))]
+        names = set(f.keys())
         episodes = [PackedEpisode(f.get_tensor(f"proprio.{i}").numpy(), f.get_tensor(f"actions.{i}").numpy(),
-                                  PackedMeta(t)) for i, t in enumerate(task_ids)]
+                                  PackedMeta(t), f.get_tensor(f"joint_pos.{i}").numpy() if f"joint_pos.{i}" in names else None)
+                    for i, t in enumerate(task_ids)]
+    arms = {int(t): a for t, a in json.loads(meta["arms"]).items()} if "arms" in meta else None
     return LatentPack(latents, episodes, json.loads(meta["keys"]), json.loads(meta.get("task", "{}")),
-                      meta["encoder_sha256"])
+                      meta["encoder_sha256"], arms)

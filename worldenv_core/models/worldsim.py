@@ -180,14 +180,18 @@ class WorldSimulator(nn.Module):
             in latent std units) are snapped back to that frame; 0 = off.
         refiner_width: > 0 adds an `ArmRefiner` of this width after the decoder (frames decoded with
             their action maps are redrawn where the robot is; trained by train_worldsim's refine phase).
+        arm_map: the action maps it is conditioned on draw the arm's links under the gripper
+            (`worldenv_core/kinematics/arm.py`), so the whole robot's pose is given, not inferred; its
+            rollouts then need the arm's joint angles at their start.
     """
 
     def __init__(self, image_size: int, chunk: int = 8, memory_offsets=(0, 4, 8, 16), latent_size: int = 16,
                  latent_channels: int = 4, ae_widths=(32, 64), ae_patch: int = 4, width: int = 48,
                  map_channels: int = 16, map_size: int | None = None, use_raw_actions: bool = False,
                  sampling_steps: int = 4, action_dim: int = 7, detail_gate: float = 0.0, noise_scale: float = 1.0,
-                 static_snap: float = 0.0, refiner_width: int = 0):
+                 static_snap: float = 0.0, refiner_width: int = 0, arm_map: bool = False):
         super().__init__()
+        self.arm_map = bool(arm_map)
         self.map_size = int(map_size or image_size // 2)  # action maps are drawn at this resolution
         if self.map_size % latent_size:
             raise ValueError(f"map_size {self.map_size} must be a multiple of latent_size {latent_size}")

@@ -29,7 +29,8 @@ def encode_episode_frames(model, frames: np.ndarray, batch: int = 64, device="cp
 class LatentChunks(Dataset):
     """Items at every step t of every episode: memory latents (M, C, h, w) at the model's memory
     offsets, the next K latents (K, C, h, w), the K actions and next proprio states, a validity
-    mask for steps past the episode end (edge-padded), and the task id (its camera).
+    mask for steps past the episode end (edge-padded), and the task id (its camera); "joints", the
+    arm's joint angles at the K steps, where the episodes carry them (a model drawing the arm reads them).
 
     `chunks_ahead` > 1 (open-loop training) widens an item to `chunks_ahead` x K steps ahead
     ("target", "proprio", "actions", "valid" of shape (chunks_ahead * K, ...)) and adds "past", the
@@ -45,6 +46,8 @@ class LatentChunks(Dataset):
             raise ValueError(f"chunks_ahead must be >= 1, got {chunks_ahead}")
         self.latents = latents
         self.proprio = [torch.from_numpy(ep.proprio) for ep in episodes]
+        joints = [getattr(ep, "joint_pos", None) for ep in episodes]
+        self.joints = [torch.from_numpy(j) for j in joints] if all(j is not None for j in joints) else None
         self.actions = [torch.from_numpy(ep.actions) for ep in episodes]
         self.task_ids = [ep.meta.task_id for ep in episodes]
         self.frames = frames
@@ -66,6 +69,8 @@ class LatentChunks(Dataset):
         act_idx = torch.from_numpy(np.clip(fut - 1, 0, T - 1))
         item = {"memory": z[mem], "target": z[fut_idx], "proprio": self.proprio[e][fut_idx],
                 "actions": self.actions[e][act_idx], "valid": torch.from_numpy(valid), "task_id": self.task_ids[e]}
+        if self.joints is not None:
+            item["joints"] = self.joints[e][fut_idx]
         if self.frames is not None:
             item["frames"] = self.frames[e][fut_idx]
         if self.ahead > 1:

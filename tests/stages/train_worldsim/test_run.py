@@ -202,6 +202,13 @@ def test_from_a_latent_pack_a_fresh_flow_network_of_another_width_and_a_deadline
     fresh = model.state_dict()
     assert all(torch.equal(v, fresh[n]) for n, v in start.state_dict().items() if not n.startswith("velocity."))
     assert sum(p.numel() for p in model.velocity.parameters()) < sum(p.numel() for p in start.velocity.parameters())
+    # a fresh flow network conditioned on maps that draw the arm, from the pack's joints and arms
+    train_worldsim(cfg(tmp_path / "gpu_arm", *there, "rollout.steps=2", f"fresh_width={width}", "worldsim.arm_map=true"))
+    m = Manifest(tmp_path / "gpu_arm")
+    final = next(p for p in m.resolve(m.latest("train_worldsim", task="tiny")) if p.name == "model.safetensors").parent
+    model, meta = load_checkpoint(final, "worldsim", contract())
+    assert model.arm_map and read_config(final)["model"]["arm_map"] and set(meta["arms"]) == set(meta["cameras"])
+    assert not start.arm_map
 
     timed = train_worldsim(cfg(tmp_path / "gpu3", *there, "minutes=0.001"))  # the plan and the deadline: ~60 ms
     plan = json.loads(next((tmp_path / "gpu3" / "train_worldsim").glob("*/plan.json")).read_text())

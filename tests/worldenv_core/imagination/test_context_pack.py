@@ -35,7 +35,16 @@ def test_a_pack_reads_back_its_contexts_keys_embeddings_task_and_settings(tmp_pa
     with pytest.raises(KeyError, match="no embedding of \\['close it'\\]"):
         pack.encoder(["close it"])
     assert [p.name for p in (tmp_path / "sub").iterdir()] == ["c.st"]  # no temporary file left
-    assert all(c.history is None for c in pack.contexts)
+    assert all(c.history is None for c in pack.contexts) and all(c.joint_pos is None for c in pack.contexts)
+
+
+def test_the_arms_joint_angles_travel_in_the_pack(tmp_path):
+    """What a world model that draws the arm starts its rollouts from."""
+    made = contexts()
+    for c in made:
+        c.joint_pos = torch.randn(7, dtype=torch.float64)
+    pack = read_context_pack(write_context_pack(tmp_path / "c.st", made, ["a", "b", "c"], encoder, "agentview", TASK))
+    assert all(torch.equal(a.joint_pos, b.joint_pos) for a, b in zip(pack.contexts, made))
 
 
 def test_mid_episode_contexts_recorded_pasts_travel_in_the_pack(tmp_path):

@@ -69,3 +69,72 @@ def test_rendered_copy_draws_every_frame_but_the_context_through_the_world_model
     assert out.shape == imgs.shape and out.dtype == torch.uint8
     assert torch.equal(out[0], imgs[0]) and not torch.equal(out[1:], imgs[1:])
     assert torch.equal(out, rendered_copy(sim, imgs, block=64))  # frame by frame: blocks do not matter
+
+
+def _toy_arm():
+    """A 7-joint arm under the test camera: links of 8 cm along x, joints turning about z, y and x."""
+    import numpy as np
+
+    from worldenv_core.kinematics.arm import SerialArm
+
+    def shift(x, z=0.0):
+        m = np.eye(4)
+        m[0, 3], m[2, 3] = x, z
+        return m
+
+    offsets = [shift(-0.3, 0.5)] + [shift(0.08) for _ in range(7)] + [shift(0.05)]
+    axes = [np.zeros(3)] + [np.eye(3)[2 - j % 3] for j in range(7)]
+    axes.append(np.zeros(3))
+    return SerialArm(np.stack(offsets), np.stack(axes), np.array([-1, 0, 1, 2, 3, 4, 5, 6, -1]), np.arange(8), 8, np.eye(3))
+
+
+def test_a_world_model_drawing_the_arm_tracks_its_joints_and_draws_its_links():
+    from pytorch_kinematics.transforms import matrix_to_axis_angle
+
+    from worldenv_core.kinematics.arm import skeletons
+
+    arm = _toy_arm()
+    q0 = torch.tensor([[0.5, 0.6, -0.4, 0.8, 0.3, -0.7, 0.4]] * 2, dtype=torch.float64)  # bent: away from singularities
+    pos, rot = arm.eef_pose(q0)
+    state = torch.cat([pos, matrix_to_axis_angle(rot), torch.ones(2, 1, dtype=torch.float64)], dim=-1)
+    frames = torch.full((2, 1, 3, 32, 32), 128, dtype=torch.uint8)
+    actions = torch.zeros(2, TINY["chunk"], 7)
+    actions[:, :, 1] = 0.3  # along y
+
+    torch.manual_seed(0)
+    sim = ImaginedSimulator(WorldSimulator(**TINY, arm_map=True), NextStateModel(), camera(2.0), arm=arm)
+    sim.reset(frames, state)  # without joints it can render, not step
+    with pytest.raises(ValueError, match="joint angles"):
+        sim.step(actions)
+    sim.reset(frames, state, joints=q0)
+    out = sim.step(actions, decode="none")
+    assert out.joints.shape == (2, TINY["chunk"], 7)
+    reached, _ = arm.eef_pose(out.joints.double())
+    assert (reached - out.proprio[..., :3].double()).norm(dim=-1).max() < 5e-3  # within a third of a 15 mm step
+    assert not torch.allclose(out.joints[:, -1].double(), q0)
+    plain = ImaginedSimulator(WorldSimulator(**TINY), NextStateModel(), camera(2.0))
+    plain.reset(frames, state)
+    lit, gripper_only = out.action_maps.amax(2) > 0.1, plain.step(actions, decode="none").action_maps.amax(2) > 0.1
+    assert (lit & ~gripper_only).flatten(2).sum(-1).min() >= 4  # every map draws links beyond the gripper's marks
+    points = skeletons(out.joints.double(), [arm, arm])
+    assert points.shape == (2, TINY["chunk"], 8, 3)
+
+
+def test_an_imagined_env_drawing_the_arm_needs_each_contexts_joints(contexts):
+    from hydra.utils import instantiate
+
+    from tests.worldenv_core.imagination.conftest import REFLECTOR
+    from worldenv_core.imagination.env import ImaginedEnv
+
+    arm = _toy_arm()
+    sim = ImaginedSimulator(WorldSimulator(**TINY, arm_map=True), NextStateModel(), camera(2.0), arm=arm)
+    encoder = lambda texts: torch.stack([torch.full((16,), float(len(t))) for t in texts])  # noqa: E731
+    env = ImaginedEnv(sim, {0: camera(2.0), 3: camera(2.5)}, instantiate(REFLECTOR), encoder, 0.5, 8, {0: arm, 3: arm})
+    ctx = contexts()
+    with pytest.raises(ValueError, match="every context needs its joint angles"):
+        env.reset(ctx)
+    for c in ctx:
+        c.joint_pos = torch.zeros(7, dtype=torch.float64)
+    env.reset(ctx)
+    step = env.step(torch.zeros(3, TINY["chunk"], 7))
+    assert step.frames.shape == (3, 3, 32, 32) and sim.joints.shape == (3, 7)
