@@ -30,13 +30,16 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from stages.train_worldsim.evaluation import fidelity_by_horizon
+from stages.train_worldsim.run import task_scenes
 from worldenv_core.cli import user_errors
 from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.errors import ConfigError
 from worldenv_core.data.selection import episode_key, holdout_split
+from worldenv_core.kinematics.arm import SerialArm
 from worldenv_core.kinematics.camera import PinholeCamera
 from worldenv_core.kinematics.next_state import NextStateModel
 from worldenv_core.manifest import Manifest
+from worldenv_core.stage import task_contract
 from worldenv_core.models.checkpoint import load_model
 
 
@@ -65,12 +68,15 @@ def main(argv: list[str] | None = None) -> list[dict]:
     held_eps = [read_episode(p, cameras=[cfg.camera]) for p in held]
     kinematics = NextStateModel(**meta["kinematics"])
     cameras = {int(t): PinholeCamera.from_dict(c) for t, c in meta["cameras"].items()}
+    arms = {int(t): SerialArm.from_dict(a) for t, a in (meta.get("arms") or {}).items()}
+    if set(arms) != set(cameras):  # a model saved before arms were kept: its scenes' arms, for the arm's region
+        arms = task_scenes(task_contract(cfg), cfg.camera, sorted(cameras))[1]
     print(f"{args.model or args.record or 'the newest train_worldsim'}: {len(held_eps)} held-out episodes, "
           f"{cfg.fidelity.starts_per_episode} starts each\n")
     print("| detail gate | sampling steps | noise scale | static snap | horizon | PSNR model | PSNR copy-last | "
           "SSIM model | SSIM copy-last | SSIM static: model / copy | SSIM moving: model / copy | "
-          "SSIM gripper: model / copy | PSNR gripper: model / copy |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "SSIM gripper: model / copy | PSNR gripper: model / copy | SSIM arm: model / copy |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     rows = []
     defaults = model.sampling_steps, model.noise_scale, model.static_snap
     for gate, steps, noise, snap in itertools.product(args.detail_gate, args.sampling_steps, args.noise_scale,
@@ -79,7 +85,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         model.sampling_steps = steps or defaults[0]
         model.noise_scale = defaults[1] if noise is None else noise
         model.static_snap = defaults[2] if snap is None else snap
-        fidelity, _ = fidelity_by_horizon(cfg, model, kinematics, cameras, held_eps, gate)
+        fidelity, _ = fidelity_by_horizon(cfg, model, kinematics, cameras, held_eps, gate, arms)
         for h, v in fidelity.items():
             rows.append({"detail_gate": gate, "sampling_steps": model.sampling_steps, "noise_scale": model.noise_scale,
                          "static_snap": model.static_snap, "horizon": h, **v})
@@ -88,7 +94,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
                   f"{v['model_ssim_static']:.3f} / {v['copy_ssim_static']:.3f} | "
                   f"{v['model_ssim_moving']:.3f} / {v['copy_ssim_moving']:.3f} | "
                   f"{v.get('model_ssim_gripper', float('nan')):.3f} / {v.get('copy_ssim_gripper', float('nan')):.3f} | "
-                  f"{v.get('model_psnr_gripper', float('nan')):.2f} / {v.get('copy_psnr_gripper', float('nan')):.2f} |",
+                  f"{v.get('model_psnr_gripper', float('nan')):.2f} / {v.get('copy_psnr_gripper', float('nan')):.2f} | "
+                  f"{v.get('model_ssim_arm', float('nan')):.3f} / {v.get('copy_ssim_arm', float('nan')):.3f} |",
                   flush=True)
     return rows
 

@@ -155,7 +155,7 @@ def run(cfg: DictConfig) -> dict:
             # conditioned on the maps this run's config asks for (the arm's links or not)
             model_cfg = {**model_cfg, "arm_map": bool(cfg.worldsim.arm_map)}
             model_cfg, start_model = fresh_velocity(base_model, model_cfg, cfg.fresh_width, cfg.seed)
-        if model_cfg.get("arm_map") and set(arms) != set(cameras):
+        if set(arms) != set(cameras) and (model_cfg.get("arm_map") or not packed):  # fidelity scores the arm's region
             arms = scene_arms(cfg, contract, pack, cameras)
         if cfg.refine.steps:  # an arm refiner after the decoder, everything else the starting model's
             model_cfg, start_model = with_refiner(start_model, model_cfg, cfg.refine.width, cfg.seed)

@@ -28,9 +28,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
-from worldenv_core.kinematics.action_map import draw_action_maps, draw_action_maps_per_rollout, gripper_mask
+from worldenv_core.kinematics.action_map import arm_mask, draw_action_maps, draw_action_maps_per_rollout, gripper_mask
 from worldenv_core.kinematics.arm import SerialArm, skeletons, track_rollouts
 from worldenv_core.kinematics.camera import PinholeCamera
 from worldenv_core.kinematics.next_state import NextStateModel, observed_carry
@@ -201,14 +202,16 @@ def open_loop_fidelity(sim: ImaginedSimulator, episodes, horizons=(8, 16, 32, 64
     frame h steps ahead differs from the start frame (mean |difference| over colour > 0.04,
     dilated 7x7: the arm and what it moved), `static` the rest; `moving_fraction` its share; and
     `gripper`, the pixels around the real gripper's projection h steps ahead (`gripper_mask`: where
-    the robot must stay sharp, whether or not it moved), with PSNR there too."""
+    the robot must stay sharp, whether or not it moved), with PSNR there too; and where the simulator
+    knows its scene's arm (`arm`) and the episodes carry joint angles, `arm`: the whole robot's links
+    at the real joints h steps ahead (`arm_mask`), with PSNR."""
     from worldenv_core.metrics import psnr, ssim_map
 
     k, longest = sim.model.chunk, max(horizons)
     n_chunks = -(-longest // k)
     keys = ("model_psnr", "model_ssim", "copy_psnr", "copy_ssim", "model_ssim_static", "copy_ssim_static",
             "model_ssim_moving", "copy_ssim_moving", "moving_fraction", "model_ssim_gripper", "copy_ssim_gripper",
-            "model_psnr_gripper", "copy_psnr_gripper")
+            "model_psnr_gripper", "copy_psnr_gripper", "model_ssim_arm", "copy_ssim_arm", "model_psnr_arm", "copy_psnr_arm")
     rows = {h: {key: [] for key in keys} for h in horizons}
     videos = []
     for ep in episodes:
@@ -229,10 +232,15 @@ def open_loop_fidelity(sim: ImaginedSimulator, episodes, horizons=(8, 16, 32, 64
             rows[h]["copy_psnr"] += psnr(copy, real).tolist()
             gripper = (gripper_mask(proprio[torch.tensor(starts) + h], sim.camera, real.shape[-1])
                        if sim.camera is not None else None)
-            _ssim_by_region(rows[h], ssim_map(fake, real), ssim_map(copy, real), real, copy, gripper)
-            if gripper is not None:
-                rows[h]["model_psnr_gripper"] += psnr(fake, real, gripper).tolist()
-                rows[h]["copy_psnr_gripper"] += psnr(copy, real, gripper).tolist()
+            arm = None
+            if sim.arm is not None and np.abs(ep.joint_pos).sum() > 0:  # imagined episodes carry no joints
+                arm = arm_mask(sim.arm.points(torch.from_numpy(ep.joint_pos[[s + h for s in starts]])), sim.camera,
+                               real.shape[-1])
+            _ssim_by_region(rows[h], ssim_map(fake, real), ssim_map(copy, real), real, copy, gripper, arm=arm)
+            for name, region in (("gripper", gripper), ("arm", arm)):
+                if region is not None:
+                    rows[h][f"model_psnr_{name}"] += psnr(fake, real, region).tolist()
+                    rows[h][f"copy_psnr_{name}"] += psnr(copy, real, region).tolist()
         s0 = starts[0]
         videos.append((imgs[s0 + 1:s0 + 1 + frames.shape[1]], frames[0, : ep.length - s0]))
     summary = {h: {key: (sum(v) / len(v) if v else float("nan")) for key, v in r.items()} | {"n": len(r["model_psnr"])}
@@ -241,20 +249,25 @@ def open_loop_fidelity(sim: ImaginedSimulator, episodes, horizons=(8, 16, 32, 64
 
 
 def _ssim_by_region(row: dict, model_map: torch.Tensor, copy_map: torch.Tensor, real: torch.Tensor,
-                    start: torch.Tensor, gripper: torch.Tensor | None = None, threshold: float = 0.04) -> None:
+                    start: torch.Tensor, gripper: torch.Tensor | None = None, threshold: float = 0.04,
+                    arm: torch.Tensor | None = None) -> None:
     """Append whole-image and per-region SSIM of a batch (maps (N, H', W'), frames (N, 3, H, W);
-    `gripper` (N, H, W) bool: the gripper's region)."""
+    `gripper`, `arm` (N, H, W) bool: the gripper's and the whole arm's regions)."""
     change = (real - start).abs().mean(dim=1, keepdim=True)
     moving = torch.nn.functional.max_pool2d(change, 7, stride=1, padding=3)[:, 0] > threshold
     crop = (moving.shape[-1] - model_map.shape[-1]) // 2  # the SSIM map is `valid`: crop to it
     moving = moving[:, crop:moving.shape[-2] - crop, crop:moving.shape[-1] - crop]
-    grip = (gripper[:, crop:gripper.shape[-2] - crop, crop:gripper.shape[-1] - crop] if gripper is not None
-            else [None] * len(moving))
+
+    def cropped(mask):
+        return mask[:, crop:mask.shape[-2] - crop, crop:mask.shape[-1] - crop] if mask is not None else [None] * len(moving)
+
     row["model_ssim"] += model_map.flatten(1).mean(1).tolist()
     row["copy_ssim"] += copy_map.flatten(1).mean(1).tolist()
-    for mm, cm, mv, gr in zip(model_map, copy_map, moving, grip):
+    for mm, cm, mv, gr, am in zip(model_map, copy_map, moving, cropped(gripper), cropped(arm)):
         row["moving_fraction"].append(mv.float().mean().item())
-        for name, region in (("static", ~mv), ("moving", mv), *((("gripper", gr),) if gr is not None else ())):
+        for name, region in (("static", ~mv), ("moving", mv), ("gripper", gr), ("arm", am)):
+            if region is None:
+                continue
             if region.any():
                 row[f"model_ssim_{name}"].append(mm[region].mean().item())
                 row[f"copy_ssim_{name}"].append(cm[region].mean().item())

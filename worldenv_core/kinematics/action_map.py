@@ -124,3 +124,15 @@ def gripper_mask(states: torch.Tensor, camera: PinholeCamera, size: int | None =
     size = int(size or camera.image_size)
     centre = _project_to(states[:, :3].to(torch.float32), camera, size)
     return (_pixel_grid(size, centre.device) - centre[:, None, None, :]).norm(dim=-1) <= reach * size
+
+
+def arm_mask(points: torch.Tensor, camera: PinholeCamera, size: int | None = None, grow_px: int = 1) -> torch.Tensor:
+    """points (N, P, 3) the arm's skeletons (`SerialArm.points` of the real joints) -> (N, S, S) bool: the
+    pixels its drawn links cover, grown by `grow_px` (the links are capsules, the real ones are not): the
+    whole robot's region, where open-loop fidelity scores the arm apart from the scene."""
+    size = int(size or camera.image_size)
+    grey = _draw_arm(points.to(torch.float32), camera, size, _pixel_grid(size, points.device))
+    mask = (grey > 0.05).float()[:, None]
+    if grow_px > 0:
+        mask = torch.nn.functional.max_pool2d(mask, 2 * grow_px + 1, stride=1, padding=grow_px)
+    return mask[:, 0] > 0

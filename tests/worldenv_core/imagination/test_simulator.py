@@ -138,3 +138,20 @@ def test_an_imagined_env_drawing_the_arm_needs_each_contexts_joints(contexts):
     env.reset(ctx)
     step = env.step(torch.zeros(3, TINY["chunk"], 7))
     assert step.frames.shape == (3, 3, 32, 32) and sim.joints.shape == (3, 7)
+
+
+def test_open_loop_fidelity_scores_the_arms_region_where_it_knows_the_arm_and_the_joints():
+    import numpy as np
+
+    from tests.conftest import synthetic_episode
+    from worldenv_core.imagination.simulator import open_loop_fidelity
+
+    torch.manual_seed(0)
+    arm = _toy_arm()
+    rng = np.random.default_rng(0)
+    ep = synthetic_episode(rng, size=32, length=20)
+    sim = ImaginedSimulator(WorldSimulator(**TINY), NextStateModel(), camera(2.0), arm=arm)
+    assert np.isnan(open_loop_fidelity(sim, [ep], horizons=(4,), starts_per_episode=1)["horizons"][4]["model_ssim_arm"])
+    ep.joint_pos = np.tile([0.5, 0.6, -0.4, 0.8, 0.3, -0.7, 0.4], (ep.num_frames, 1))  # a real episode's joints
+    row = open_loop_fidelity(sim, [ep], horizons=(4,), starts_per_episode=1)["horizons"][4]
+    assert -1 <= row["model_ssim_arm"] <= 1 and -1 <= row["copy_ssim_arm"] <= 1 and 0 < row["model_psnr_arm"] < 100

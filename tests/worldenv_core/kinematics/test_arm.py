@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from worldenv_core.kinematics import PinholeCamera, draw_action_maps
-from worldenv_core.kinematics.action_map import ARM_SHADE
+from worldenv_core.kinematics.action_map import ARM_SHADE, arm_mask
 from worldenv_core.kinematics.arm import PATH, SEGMENT_RADIUS_M, SerialArm, track
 
 
@@ -76,6 +76,8 @@ def test_the_drawn_arm_is_where_the_camera_sees_the_robot(tiny_env, arm_and_traj
         drawn = (with_arm.max(0).values > 0.1).numpy()
         both = (drawn & robot).sum()
         scores.append((both / robot.sum(), both / drawn.sum()))
+        (mask,) = arm_mask(points, cam, size).numpy()  # the region open-loop fidelity scores the arm in
+        assert (mask & robot).sum() / robot.sum() >= both / robot.sum() and mask.mean() < 0.5
         disc = (plain > 0.999).all(0)  # the gripper's disc stays white, over the links
         assert disc.any() and torch.equal(with_arm[:, disc], plain[:, disc])
         assert (with_arm.max(0).values > 0.1).sum() > 3 * (plain.max(0).values > 0.1).sum()
