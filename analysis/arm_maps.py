@@ -25,6 +25,7 @@ from worldenv_core.cli import user_errors
 from worldenv_core.data.mcap_io import list_episode_files, read_episode
 from worldenv_core.errors import ConfigError
 
+
 def robot_pixels(env, size: int) -> np.ndarray:
     """(size, size) bool: where the camera sees a robot or gripper geom (upright image)."""
     names = np.array([env.sim.model.geom_id2name(g) or "" for g in range(env.sim.model.ngeom)] + [""])

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import torch
 
+from worldenv_core.kinematics.arm import SEGMENT_RADIUS_M, rollout_groups
 from worldenv_core.kinematics.camera import PinholeCamera
 from worldenv_core.kinematics.next_state import axis_angle_to_matrix
 
@@ -50,8 +51,6 @@ def _segment_distance(grid: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> t
 def _draw_arm(points: torch.Tensor, camera: PinholeCamera, size: int, grid: torch.Tensor) -> torch.Tensor:
     """points (N, P, 3) the arm's skeleton -> (N, H, W) grey levels (0 where no link is seen).
     Each segment is a capsule of its link's radius at its depth; where links overlap the nearest wins."""
-    from worldenv_core.kinematics.arm import SEGMENT_RADIUS_M
-
     if points.shape[-2] != len(SEGMENT_RADIUS_M) + 1:
         raise ValueError(f"an arm skeleton has {len(SEGMENT_RADIUS_M) + 1} points, got {points.shape[-2]}")
     uv, depth = _project_to(points, camera, size), camera.project(points)[1]
@@ -108,10 +107,7 @@ def draw_action_maps_per_rollout(states: torch.Tensor, cameras: list[PinholeCame
         raise ValueError(f"{len(cameras)} cameras for a batch of {states.shape[0]} rollouts")
     size = int(size or cameras[0].image_size)
     out = torch.empty(*states.shape[:-1], 3, size, size, device=states.device)
-    groups: dict[int, list[int]] = {}
-    for i, cam in enumerate(cameras):
-        groups.setdefault(id(cam), []).append(i)
-    for idx in groups.values():
+    for _, idx in rollout_groups(cameras):
         out[idx] = draw_action_maps(states[idx].float(), cameras[idx[0]], size=size,
                                     arm_points=None if arm_points is None else arm_points[idx])
     return out
