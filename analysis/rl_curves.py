@@ -56,19 +56,33 @@ def es_ledger(work: str | Path) -> list[dict]:
     return read_ledger(folder) if folder.is_dir() else []
 
 
+def consumed(steps: list[dict], rollouts_per_iteration: int):
+    """step -> the real episodes the run's training consumed up to it. An iteration that recorded its count (ES:
+    `train_episodes`, 0 in imagination) with the paired-replay guard's (`guard_episodes`) counts those; an older
+    history's iteration counts its rollouts (every one real in the real route, where nothing else was recorded)."""
+    def real(h: dict) -> float:
+        return h.get("train_episodes", rollouts_per_iteration) + h.get("guard_episodes", 0)
+    totals = {0: 0}
+    for h in sorted(steps, key=lambda h: h["step"]):
+        totals[h["step"]] = totals[max(totals)] + real(h)
+    return lambda step: int(totals[max(k for k in totals if k <= step)])
+
+
 def summarise(history: list[dict], rollouts_per_iteration: int, ledger: list[dict] | None = None) -> dict:
     """Per-iteration series and the throughput of the iterations' rollouts; with an ES run's `ledger`, whether
     its directions' effects repeat on other starts (`es.half_agreement`, in the direction-cosine column)."""
     steps = [h for h in history if "mean_reward" in h]
-    val = [(h["step"] * rollouts_per_iteration, h["validation_success"]) for h in history if "validation_success" in h]
+    spent = consumed(steps, rollouts_per_iteration)
+    val = [(spent(h["step"]), h["validation_success"]) for h in history if "validation_success" in h]
     val_n = [h.get("validation_episodes", 0) for h in history if "validation_success" in h]
-    per_task = {int(k[len("validation_task"):]): [(h["step"] * rollouts_per_iteration, h[k]) for h in history if k in h]
+    per_task = {int(k[len("validation_task"):]): [(spent(h["step"]), h[k]) for h in history if k in h]
                 for k in sorted({k for h in history for k in h if k.startswith("validation_task")})}
     series = {k: [(h["step"], h[k]) for h in steps if k in h]
               for k in ("mean_reward", "kept_groups", "exact_kl", "action_shift_rms", "direction_cosine", "ppo_steps",
                         "first_step_kl", "es_pair_diff_abs", "es_return_std", "es_step_rms")}
     wall = sum(h.get("seconds", 0.0) for h in steps)
-    episodes = len(steps) * rollouts_per_iteration
+    episodes = spent(steps[-1]["step"]) if steps else 0
+    rollouts = len(steps) * rollouts_per_iteration  # the throughput's unit: real or imagined, as the run made them
     parts = {p: sum(h.get(f"rollout_{p}_seconds", 0.0) for h in steps) for p in PARTS}
     busy = sum(h.get("rollout_total_seconds", 0.0) for h in steps)
     update = sum(h.get("update_seconds", 0.0) for h in steps)
@@ -95,8 +109,8 @@ def summarise(history: list[dict], rollouts_per_iteration: int, ledger: list[dic
             "validation_tasks": per_task, **series,
             "gradient_signal": {"iterations": len(sig), "signal_sq": pooled[0] if pooled else None,
                                 "noise_sq": pooled[1] if pooled else None, "groups_for_cos_0.9": groups_needed},
-            "throughput": {"episodes_per_hour": episodes / wall * 3600 if wall else None,
-                           "hours_per_1000_episodes": wall / episodes * 1000 / 3600 if episodes else None,
+            "throughput": {"episodes_per_hour": rollouts / wall * 3600 if wall else None,
+                           "hours_per_1000_episodes": wall / rollouts * 1000 / 3600 if rollouts else None,
                            "iteration_seconds": wall / len(steps) if steps else None,
                            # shares of the rollouts' worker time, and the PPO update's share of the wall time
                            "rollout_share": {p: v / busy for p, v in parts.items()} if busy else {},
@@ -163,8 +177,8 @@ def markdown(runs: dict[str, dict]) -> str:
     def mean(pts):  # an iteration whose halves left nothing to compare reads NaN (undefined, not zero): skipped
         ys = [y for _, y in pts if not (isinstance(y, float) and math.isnan(y))]
         return sum(ys) / len(ys) if ys else None
-    rows = ["| run | iterations | real RL episodes | validation (episodes: success) | mean exact KL | "
-            "mean direction cosine | mixed groups for cos 0.9 (pooled) | episodes / hour |",
+    rows = ["| run | iterations | real RL episodes | validation (real episodes: success) | mean exact KL | "
+            "mean direction cosine | mixed groups for cos 0.9 (pooled) | rollouts / hour |",
             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for label, s in runs.items():
         val = ", ".join(f"{x}: {y:.2f}" for x, y in s["validation"])

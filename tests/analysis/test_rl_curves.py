@@ -33,6 +33,15 @@ def test_summary_counts_real_episodes_and_splits_the_time():
     assert "| 0.0400 | 0.100 | 192 |" in markdown({"r": s})
 
 
+def test_an_imagined_run_counts_only_its_real_episodes_the_guards_replays():
+    h = _history()
+    for e in h[1:]:  # imagination: no training rollout is real; the guard replayed 32 after each step but the third
+        e.update(train_episodes=0.0, guard_episodes=0.0 if e["step"] == 3 else 32.0)
+    s = summarise(h, rollouts_per_iteration=256)
+    assert s["real_rl_episodes"] == 96 and s["validation"] == [(0, 0.5), (64, 0.6)]
+    assert s["throughput"]["episodes_per_hour"] == pytest.approx(4 * 256 / 2400 * 3600)  # rollouts, imagined ones too
+
+
 def test_the_cli_reads_a_work_dir_and_keeps_the_curve(tmp_path):
     work = tmp_path / "work"
     work.mkdir()
