@@ -62,9 +62,10 @@ def consumed(steps: list[dict], rollouts_per_iteration: int):
     history's iteration counts its rollouts (every one real in the real route, where nothing else was recorded)."""
     def real(h: dict) -> float:
         return h.get("train_episodes", rollouts_per_iteration) + h.get("guard_episodes", 0)
-    totals = {0: 0}
+    totals, running = {0: 0.0}, 0.0
     for h in sorted(steps, key=lambda h: h["step"]):
-        totals[h["step"]] = totals[max(totals)] + real(h)
+        running += real(h)
+        totals[h["step"]] = running
     return lambda step: int(totals[max(k for k in totals if k <= step)])
 
 
