@@ -45,7 +45,7 @@ BATCHES = ("ae.batch_size", "flow.batch_size", "rollout.batch_size")
 ON_A_MODEL = ("latents_to", "latents_from", "fresh_width", "minutes")  # settings that go on from init_from's model
 # settings added after runs were made: at these values a run keeps its record's settings hash and work dir
 LATER_DEFAULTS = {"latents_to": None, "latents_from": None, "latents_every": 1, "fresh_width": None, "minutes": None,
-                  "snapshots": 1, "policy_collections": "latest",
+                  "snapshots": 1, "policy_collections": "latest", "demo_share": None,
                   "refine": {"steps": 0, "chunks": 3, "batch_size": 8, "frames": 2, "lr": 1e-3, "arm_weight": 4.0, "width": 16}}
 
 
@@ -62,6 +62,11 @@ def validate(cfg: DictConfig) -> None:
         positive_int(cfg, key, allow_zero=True)
     for key in ("refine.batch_size", "refine.frames", "refine.width"):
         positive_int(cfg, key)
+    share = cfg.get("demo_share")
+    if share is not None and not (isinstance(share, (int, float)) and 0 < share < 1):
+        raise ConfigError(f"demo_share must be a number strictly between 0 and 1 (or null), got {share!r}")
+    if share is not None and cfg.expert_only:
+        raise ConfigError("demo_share weighs the demos against the policy rollouts: expert_only=true trains on no rollouts")
     if cfg.refine.arm_weight < 0:
         raise ConfigError(f"refine.arm_weight must be >= 0, got {cfg.refine.arm_weight}")
     if cfg.refine.steps and not cfg.init_from:
@@ -175,6 +180,7 @@ def run(cfg: DictConfig) -> dict:
                 "cameras": {str(t): c.to_dict() for t, c in cameras.items()},
                 **({"arms": {str(t): a.to_dict() for t, a in arms.items()}} if arms else {}), "episodes": len(episodes),
                 "expert_only": bool(cfg.expert_only), "policy_collections": cfg.policy_collections, "held_out": held,
+                **({"demo_share": float(cfg.demo_share)} if cfg.get("demo_share") is not None else {}),
                 "rollout_steps": prior + int(cfg.rollout.steps),
                 **({"refine_steps": int((base_meta or {}).get("refine_steps") or 0) + int(cfg.refine.steps)}
                    if cfg.refine.steps or (base_meta or {}).get("refine_steps") else {}),

@@ -34,6 +34,12 @@ def _maps(b: dict, steps: slice, model, cameras: dict[int, PinholeCamera], devic
                                         model.map_size, points)
 
 
+def _weights(chunks: LatentChunks, cfg):
+    """The items' sampling weights when `demo_share` asks for the demos to be drawn at a set share."""
+    share = cfg.get("demo_share")
+    return None if share is None else chunks.demo_weights(float(share))
+
+
 def ae_phase(model, optimizer, frames_of, cfg, device) -> Phase:
     """Phase 1: the autoencoder on single frames, L1 + MSE. Frames are drawn by step (resumes exactly);
     `frames_of()` gives every training frame, decoded once, only when the phase runs."""
@@ -60,7 +66,7 @@ def flow_phase(model, ema, optimizer, episodes, cameras, cfg, device, arms=None)
         chunks = episode_chunks(model, episodes, device, fresh=start == 0)
         if start == 0:
             ema.load_state_dict(model.state_dict())
-        return batches(chunks, cfg.flow.batch_size, cfg.seed + 1, start_step=start)
+        return batches(chunks, cfg.flow.batch_size, cfg.seed + 1, start_step=start, weights=_weights(chunks, cfg))
 
     def step(b) -> dict:
         memory = b["memory"].to(device) / model.latent_scale
@@ -87,7 +93,8 @@ def rollout_phase(model, ema, optimizer, chunks_of, cameras, cfg, device, arms=N
 
     def draw(start: int):
         chunks = chunks_of(ahead)
-        return zip(count(start), batches(chunks, cfg.rollout.batch_size, cfg.seed + 2, start_step=start))
+        return zip(count(start), batches(chunks, cfg.rollout.batch_size, cfg.seed + 2, start_step=start,
+                                         weights=_weights(chunks, cfg)))
 
     def step(item) -> dict:
         done, b = item
@@ -120,7 +127,9 @@ def refine_phase(model, ema, optimizer, chunks_of, cameras, cfg, device, arms=No
     ahead = cfg.refine.chunks + 1  # items carry "past" (what imagination starts from) only when wider than a chunk
 
     def draw(start: int):
-        return zip(count(start), batches(chunks_of(ahead), cfg.refine.batch_size, cfg.seed + 3, start_step=start))
+        chunks = chunks_of(ahead)
+        return zip(count(start), batches(chunks, cfg.refine.batch_size, cfg.seed + 3, start_step=start,
+                                         weights=_weights(chunks, cfg)))
 
     def step(item) -> dict:
         done, b = item

@@ -31,6 +31,7 @@ FORMAT = "worldenv-latent-pack-1"
 @dataclass
 class PackedMeta:
     task_id: int
+    source: str | None = None  # "expert" / "policy" / "import"; None in a pack written before sources were kept
 
 
 @dataclass
@@ -92,6 +93,7 @@ def write_latent_pack(path: str | Path, latents: list[torch.Tensor], episodes, k
         tensors[f"actions.{i}"] = torch.from_numpy(np.ascontiguousarray(ep.actions, dtype=np.float32))
         tensors[f"joint_pos.{i}"] = torch.from_numpy(np.ascontiguousarray(ep.joint_pos, dtype=np.float64))
     meta = {"format": FORMAT, "keys": json.dumps(keys), "task_ids": json.dumps([int(ep.meta.task_id) for ep in episodes]),
+            "sources": json.dumps([ep.meta.source for ep in episodes]),
             "camera": camera, "encoder_sha256": encoder_sha256(model_dir), "task": json.dumps(task),
             **({"arms": json.dumps({str(t): a for t, a in arms.items()})} if arms else {})}
     return write_pack(path, tensors, meta)
@@ -106,10 +108,11 @@ def read_latent_pack(path: str | Path, model_dir: str | Path) -> LatentPack:
             raise CheckpointError(f"{path} was encoded by another autoencoder than {model_dir}'s: its latents would not be "
                                   "this model's; pack again from this model")
         task_ids = json.loads(meta["task_ids"])
+        sources = json.loads(meta["sources"]) if "sources" in meta else [None] * len(task_ids)
         latents = [f.get_tensor(f"latents.{i}").float() for i in range(len(task_ids))]
         names = set(f.keys())
         episodes = [PackedEpisode(f.get_tensor(f"proprio.{i}").numpy(), f.get_tensor(f"actions.{i}").numpy(),
-                                  PackedMeta(t), f.get_tensor(f"joint_pos.{i}").numpy() if f"joint_pos.{i}" in names else None)
+                                  PackedMeta(t, sources[i]), f.get_tensor(f"joint_pos.{i}").numpy() if f"joint_pos.{i}" in names else None)
                     for i, t in enumerate(task_ids)]
     arms = {int(t): a for t, a in json.loads(meta["arms"]).items()} if "arms" in meta else None
     return LatentPack(latents, episodes, json.loads(meta["keys"]), json.loads(meta.get("task", "{}")),

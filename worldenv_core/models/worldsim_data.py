@@ -26,6 +26,9 @@ def encode_episode_frames(model, frames: np.ndarray, batch: int = 64, device="cp
     return torch.cat(out)
 
 
+DEMO_SOURCES = ("expert", "import")  # demonstrations, as against policy rollouts
+
+
 class LatentChunks(Dataset):
     """Items at every step t of every episode: memory latents (M, C, h, w) at the model's memory
     offsets, the next K latents (K, C, h, w), the K actions and next proprio states, a validity
@@ -50,6 +53,7 @@ class LatentChunks(Dataset):
         self.joints = [torch.from_numpy(j) for j in joints] if all(j is not None for j in joints) else None
         self.actions = [torch.from_numpy(ep.actions) for ep in episodes]
         self.task_ids = [ep.meta.task_id for ep in episodes]
+        self.sources = [getattr(ep.meta, "source", None) for ep in episodes]
         self.frames = frames
         self.offsets = np.asarray(memory_offsets)
         self.chunk, self.ahead = chunk, chunks_ahead
@@ -58,6 +62,23 @@ class LatentChunks(Dataset):
 
     def __len__(self) -> int:
         return len(self.index)
+
+    def demo_weights(self, share: float) -> torch.Tensor:
+        """Per-item sampling weights (for `batches`) under which a drawn item comes from a demonstration
+        (an expert or imported episode) with probability `share` and from a policy rollout otherwise,
+        uniformly within each; with only one kind of episode, uniform. Exploration rollouts outnumber
+        the demos, and a one-step flow model trained on many grasps that split between lift and
+        miss learns their mean (a fading bowl): drawing the demos more often keeps the clean grasp."""
+        if not 0 < share < 1:
+            raise ValueError(f"demo_share must be strictly between 0 and 1, got {share}")
+        if None in self.sources:
+            raise ValueError("demo_share needs each episode's source, which this data does not carry (a latent pack "
+                             "written before sources were kept: pack again)")
+        demo = torch.tensor([self.sources[e] in DEMO_SOURCES for e, _ in self.index])
+        n_demo = int(demo.sum())
+        if n_demo in (0, len(demo)):
+            return torch.ones(len(demo))
+        return torch.where(demo, share / n_demo, (1 - share) / (len(demo) - n_demo))
 
     def __getitem__(self, i: int) -> dict:
         e, t = self.index[i]

@@ -24,17 +24,27 @@ def pick_device(name: str = "auto") -> torch.device:
     return device
 
 
-def batches(dataset: Dataset, batch_size: int, seed: int, start_step: int = 0, num_workers: int = 0) -> Iterator[dict]:
+def batches(dataset: Dataset, batch_size: int, seed: int, start_step: int = 0, num_workers: int = 0,
+            weights: torch.Tensor | None = None) -> Iterator[dict]:
     """Endless shuffled batches. Epoch e is a permutation drawn with seed + e, and a run resumed at
     step s starts at batch s of that order, so it sees exactly the batches an uninterrupted run
     would (resume is bit-identical). The loader gets its own generator: creating one draws a seed,
-    which must not come from the global RNG that augmentation and dropout use."""
+    which must not come from the global RNG that augmentation and dropout use.
+
+    `weights` (one per item, not all zero): an epoch is instead len(dataset) items drawn with
+    replacement in proportion to them, with the same seeding, so weighted runs resume exactly too."""
     n = len(dataset)
+    if weights is not None:
+        if weights.shape != (n,) or bool((weights < 0).any()) or not float(weights.sum()) > 0:
+            raise ValueError(f"batches: weights must be {n} non-negative numbers, not all zero; got shape "
+                             f"{tuple(weights.shape)}")
+        weights = weights.double()
     per_epoch = max(1, n // batch_size)
     epoch, skip = divmod(start_step, per_epoch)
     while True:
         g = torch.Generator().manual_seed(seed + epoch)
-        order = torch.randperm(n, generator=g)[skip * batch_size:].tolist()
+        drawn = torch.randperm(n, generator=g) if weights is None else torch.multinomial(weights, n, True, generator=g)
+        order = drawn[skip * batch_size:].tolist()
         loader = DataLoader(Subset(dataset, order), batch_size=batch_size, shuffle=False,
                             drop_last=n >= batch_size, generator=g, num_workers=num_workers)
         yield from loader

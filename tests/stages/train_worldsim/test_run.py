@@ -270,3 +270,12 @@ def test_the_arm_refiner_trains_on_imagined_frames_and_keeps_everything_else(dem
     assert any(state[n].abs().sum() > 0 for n in state if n.startswith("refiner.out"))  # it left its zero start
     report = json.loads(next(p for p in m.resolve(refined) if p.name == "fidelity.json").read_text())["fidelity"]
     assert all("start_ssim_gripper" in v and "model_ssim_gripper" in v for v in report.values())
+
+
+def test_demo_share_is_checked_before_any_work(tmp_path):
+    from worldenv_core.stage import ConfigError
+
+    with pytest.raises(ConfigError, match="demo_share must be a number strictly between 0 and 1"):
+        train_worldsim(cfg(tmp_path / "none", "demo_share=1.5"))
+    with pytest.raises(ConfigError, match="demo_share weighs the demos.*expert_only=true"):
+        train_worldsim(cfg(tmp_path / "none", "demo_share=0.5", "expert_only=true"))

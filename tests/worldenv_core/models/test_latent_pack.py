@@ -12,11 +12,11 @@ TASK = {"task": "tiny", "suite": "libero_goal", "image_size": 8, "chunk": 4, "ac
 
 
 class Episode:
-    def __init__(self, length, task_id, seed):
+    def __init__(self, length, task_id, seed, source="expert"):
         rng = np.random.default_rng(seed)
         self.proprio, self.actions = rng.normal(size=(length + 1, 7)), rng.normal(size=(length, 7))
         self.joint_pos = rng.normal(size=(length + 1, 7))
-        self.meta, self.length = PackedMeta(task_id), length
+        self.meta, self.length = PackedMeta(task_id, source), length
 
 
 def model_dir(tmp_path, name, shift=0.0):
@@ -29,7 +29,7 @@ def model_dir(tmp_path, name, shift=0.0):
 
 def test_a_pack_reads_back_for_its_autoencoder_only_and_thins_by_episode(tmp_path):
     model = model_dir(tmp_path, "m")
-    episodes = [Episode(5, 0, 0), Episode(3, 1, 1), Episode(4, 0, 2)]
+    episodes = [Episode(5, 0, 0), Episode(3, 1, 1, "policy"), Episode(4, 0, 2)]
     latents = [torch.randn(ep.length + 1, 2, 2, 2) for ep in episodes]
     arms = {0: {"eef": 12}, 1: {"eef": 12}}  # each scene's arm, for a model that draws it
     path = write_latent_pack(tmp_path / "p.st", latents, episodes, ["a", "b", "c"], model, "agentview", TASK, arms)
@@ -39,6 +39,7 @@ def test_a_pack_reads_back_for_its_autoencoder_only_and_thins_by_episode(tmp_pat
     assert torch.equal(pack.chunks(type("M", (), {"memory_offsets": (0,), "chunk": 2})(), 1)[0]["joints"],
                        torch.from_numpy(episodes[0].joint_pos[1:3]))
     assert [ep.meta.task_id for ep in pack.episodes] == [0, 1, 0] and pack.episodes[1].length == 3
+    assert [ep.meta.source for ep in pack.episodes] == ["expert", "policy", "expert"]  # what demo_share weighs
     assert all(torch.allclose(a, b, atol=1e-2) for a, b in zip(pack.latents, latents))  # stored as fp16
     assert np.allclose(pack.episodes[2].actions, episodes[2].actions, atol=1e-6)
     assert pack.every(2).keys == ["a", "c"] and len(pack.every(2).latents) == 2

@@ -190,6 +190,29 @@ def test_latent_windows_for_open_loop_training_hold_the_real_past_and_several_ch
         LatentChunks([z], [ep], model.memory_offsets, k, chunks_ahead=0)
 
 
+def test_demo_share_weights_draw_demos_at_the_share_asked_whatever_their_number():
+    from types import SimpleNamespace
+
+    def ep(T, source):
+        return SimpleNamespace(proprio=np.zeros((T + 1, 7), np.float32), actions=np.zeros((T, 7), np.float32),
+                               meta=SimpleNamespace(task_id=0, source=source), length=T)
+
+    eps = [ep(10, "expert"), ep(30, "policy"), ep(40, "policy"), ep(20, "import")]
+    data = LatentChunks([torch.zeros(len(e.proprio), 1, 1, 1) for e in eps], eps, (0,), 4)
+    w = data.demo_weights(0.5)
+    demo = torch.tensor([eps[e].meta.source != "policy" for e, _ in data.index])
+    torch.testing.assert_close(w[demo].sum() / w.sum(), torch.tensor(0.5))
+    assert len(set(w[demo].tolist())) == len(set(w[~demo].tolist())) == 1  # uniform within each kind
+    only_demos = LatentChunks([torch.zeros(11, 1, 1, 1)], [ep(10, "expert")], (0,), 4)
+    assert only_demos.demo_weights(0.3).tolist() == [1.0] * 10
+    with pytest.raises(ValueError, match="strictly between 0 and 1"):
+        data.demo_weights(1.0)
+    unknown = LatentChunks([torch.zeros(11, 1, 1, 1)], [SimpleNamespace(**{**vars(ep(10, "x")),
+                                                                           "meta": SimpleNamespace(task_id=0)})], (0,), 4)
+    with pytest.raises(ValueError, match="source.*pack again"):
+        unknown.demo_weights(0.5)
+
+
 def test_next_chunk_is_the_flow_prediction_from_the_history_with_the_static_snap():
     torch.manual_seed(0)
     model = WorldSimulator(**{**TINY, "noise_scale": 0.0, "sampling_steps": 1, "static_snap": 0.15}).eval()
