@@ -75,10 +75,11 @@ def es_phase(policy, collect, n_contexts: int | None, rl, seed: int, ledger: Pat
         seeds = torch.randint(2**62, (rl.es_pairs,), generator=g).tolist()
         members = es.antithetic_members(seeds, rl.es_sigma)
         out = collect(copy.deepcopy(policy).eval(), picks, members)
-        returns = es.member_returns(out["success"], out["steps"], rl.es_discount)
+        score = out["reward"] if rl.get("es_return", "success") == "score" else None
+        returns = es.member_returns(out["success"], out["steps"], rl.es_discount, score)
         t_update = time.perf_counter()
         before = [p.detach().clone() for _, p in es.es_parameters(policy, rl.es_parameters)] if guard else None
-        mixed = es.mixed_contexts(out["success"])
+        mixed = es.mixed_contexts(out["success"], score)
         if mixed >= rl.get("es_min_mixed", 1):
             stats = es.ars_update(policy, seeds, returns, rl.es_step, rl.get("es_top"), rl.es_parameters)
         else:  # made from too few starts to be the reward's direction: the ledger says no step was taken
@@ -96,7 +97,8 @@ def es_phase(policy, collect, n_contexts: int | None, rl, seed: int, ledger: Pat
                          rl.guard_max_hack_rate)
         if ledger is not None:
             es.write_ledger_entry(ledger, it + 1, picks, seeds, out["success"], out["steps"], returns, rl,
-                                  rolled_back=bool(stats.get("rolled_back")), no_step=bool(stats.get("no_step")))
+                                  rolled_back=bool(stats.get("rolled_back")), no_step=bool(stats.get("no_step")),
+                                  score=score)
         stats.update({f"rollout_{k}_seconds": v for k, v in out["timing"].items()})
         success = out["success"].float()
         return {"mean_reward": float(success.mean()), "reflector_success_rate": float(success.mean()),
@@ -149,9 +151,9 @@ def seed_from_ledger(work: Path, ledger_from: str | Path, policy, optimizers: di
         raise ConfigError(f"rl.es_ledger_from={ledger_from} holds no iter_NNNN.json")
     for e in entries:
         shape = (len(e["success"]), len(e["success"][0]) if e["success"] else 0)
-        settings = {**{k: e.get(k) for k in es.LEDGER_SETTINGS}, "es_pairs": len(e["seeds"]),
+        settings = {**{k: e.get(k, es.LEDGER_DEFAULTS.get(k)) for k in es.LEDGER_SETTINGS}, "es_pairs": len(e["seeds"]),
                     "contexts_per_iteration": shape[0]}
-        wrong = [k for k in LEDGER_MUST_MATCH if settings[k] != rl.get(k)]
+        wrong = [k for k in LEDGER_MUST_MATCH if settings[k] != rl.get(k, es.LEDGER_DEFAULTS.get(k))]
         if wrong:
             raise ConfigError(f"rl.es_ledger_from={ledger_from}: iteration {e['iteration']} was made with "
                               + ", ".join(f"rl.{k}={settings[k]}" for k in wrong) + ", not this run's")
@@ -161,7 +163,8 @@ def seed_from_ledger(work: Path, ledger_from: str | Path, policy, optimizers: di
         for e in entries[:done]:
             es.write_ledger_entry(work / "es_ledger", e["iteration"], e["contexts"], e["seeds"],
                                   torch.tensor(e["success"]), torch.tensor(e["steps"]), torch.tensor(e["returns"]), rl,
-                                  e.get("rolled_back", False), e.get("no_step", False))
+                                  e.get("rolled_back", False), e.get("no_step", False),
+                                  torch.tensor(e["score"]) if "score" in e else None)
         history = json.loads((folder / "history.json").read_text()) if (folder / "history.json").exists() else []
         history = [h for h in history if h.get("step", 0) <= done]
         evaluated = sorted({int(h["step"]) for h in history if "validation_success" in h or "real_success" in h})

@@ -72,7 +72,7 @@ RL_DEFAULTS = {"mid_episode_frames": 0, "verdicts": "own", "contexts": "episodes
                "critic_minibatch": 256, "critic_lr": 1e-3, "critic_hidden": 256, "critic_replay": 0,
                "exploration": "step", "es_pairs": 8, "es_sigma": 0.05, "es_step": 0.05, "es_top": None,
                "es_discount": 1.0, "es_parameters": "mean", "es_ledger_from": None, "task_focus": None,
-               "es_min_mixed": 1, "context_depth": list(WHOLE_DEPTH)}
+               "es_min_mixed": 1, "es_return": "success", "context_depth": list(WHOLE_DEPTH)}
 # top-level settings added later, kept out of the settings hash and work dir at these values
 LATER_DEFAULTS = {"contexts_to": None, "contexts_from": None, "minutes": None, "policy_collections": "latest"}
 
@@ -288,7 +288,7 @@ def run(cfg: DictConfig) -> dict:
 def validate_es(cfg: DictConfig) -> None:
     """rl.policy_update=es: sizes that make a step; in imagination, one process (the members' rollouts are
     one batch through the world model)."""
-    from worldenv_core.rl.es import PARAMETER_SETS
+    from worldenv_core.rl.es import PARAMETER_SETS, RETURNS
 
     if launched() > 1:
         raise ConfigError(f"rl.policy_update=es runs in one process (its members share one batch), but torchrun "
@@ -299,6 +299,11 @@ def validate_es(cfg: DictConfig) -> None:
             raise ConfigError(f"rl.{key} must be > 0 (a size relative to each weight tensor's RMS), got {cfg.rl[key]}")
     if not 0 < cfg.rl.es_discount <= 1:
         raise ConfigError(f"rl.es_discount must be in (0, 1] (1: the return is the success), got {cfg.rl.es_discount}")
+    if cfg.rl.get("es_return", "success") not in RETURNS:
+        raise ConfigError(f"rl.es_return must be one of {list(RETURNS)}, got {cfg.rl.es_return!r}")
+    if cfg.rl.get("es_return") == "score" and cfg.env == "real":
+        raise ConfigError("rl.es_return=score needs env=imagined (the reflector's score); the real route's return is "
+                          "the benchmark's success")
     if cfg.rl.es_top is not None and not (isinstance(cfg.rl.es_top, int) and 0 < cfg.rl.es_top <= cfg.rl.es_pairs):
         raise ConfigError(f"rl.es_top must be null (every pair) or an int in 1..rl.es_pairs, got {cfg.rl.es_top!r}")
     positive_int(cfg, "rl.es_min_mixed", allow_zero=True)

@@ -13,7 +13,12 @@ LeRobot's processors do for a ResNet backbone; proprio and actions are normalise
 statistics held in this module, as for `LaplacePolicy`.
 
 Offline: the ResNet starts from no pretrained weights unless `backbone_weights` names a local
-torchvision state-dict file; nothing is fetched. `save_lerobot(folder)` also writes the ACT model in
+torchvision state-dict file; nothing is fetched. LeRobot's ResNet normalises with frozen batch norm, made
+for ImageNet weights: started untrained, its statistics stay the identity, so nothing keeps the activations in
+range while it trains. On libero_spatial's demos the layer-4 features grew to about 2e6, the chunk stopped
+depending on the image and ACT ended at 0 % (docs/notebook/lerobot_native.md), so an untrained backbone gets
+trainable batch norm (`backbone_norm=auto`); LeRobot's layout receives it folded back into frozen batch norm
+(the same function in eval mode). `save_lerobot(folder)` also writes the ACT model in
 LeRobot's own layout (`ACTPolicy.save_pretrained`), which `ACTPolicy.from_pretrained` reads back.
 """
 
@@ -50,14 +55,15 @@ class ACTLaplacePolicy(nn.Module):
     """Args: cameras, chunk (K), image_size: the task contract's. dim_model, n_heads, dim_feedforward,
     n_encoder_layers, n_decoder_layers, vision_backbone, dropout: ACT's (LeRobot's names).
     backbone_weights: a local torchvision state dict for the ResNet (else it starts untrained).
+    backbone_norm: frozen (LeRobot's, for pretrained weights), batch (trainable), auto (batch when untrained).
     beta_min/beta_max: the scale head's log-scale range (soft-clamped), as `LaplacePolicy`'s."""
 
     def __init__(self, cameras: list[str], chunk: int = 8, image_size: int = 128, instruction_dim: int = 384,
                  proprio_dim: int = PROPRIO_DIM, action_dim: int = ACTION_DIM, proprio_rotation: str = "matrix",
                  dim_model: int = 256, n_heads: int = 8, dim_feedforward: int = 1024, n_encoder_layers: int = 4,
                  n_decoder_layers: int = 1, vision_backbone: str = "resnet18", dropout: float = 0.1,
-                 backbone_weights: str | None = None, scale_layers: int = 2, beta_min: float = -7.0,
-                 beta_max: float = 1.0):
+                 backbone_weights: str | None = None, backbone_norm: str = "auto", scale_layers: int = 2,
+                 beta_min: float = -7.0, beta_max: float = 1.0):
         super().__init__()
         from lerobot.policies.act.modeling_act import ACTPolicy
 
@@ -72,6 +78,10 @@ class ACTLaplacePolicy(nn.Module):
                                         dropout=dropout))
         if backbone_weights:
             load_resnet_weights(self.act.model.backbone, backbone_weights)
+        if backbone_norm not in BACKBONE_NORMS:
+            raise ValueError(f"policy.backbone_norm must be one of {list(BACKBONE_NORMS)}, got {backbone_norm!r}")
+        if backbone_norm == "batch" or (backbone_norm == "auto" and not backbone_weights):
+            swap_norms(self.act.model.backbone, to_trainable=True)
         self.proprio_norm, self.action_norm = Normalizer(proprio_dim), Normalizer(action_dim)
         self.scale_head = mlp(dim_model, dim_model, action_dim, scale_layers)  # per decoder token, as ACT's action head
         self.register_buffer("image_mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
@@ -120,9 +130,35 @@ class ACTLaplacePolicy(nn.Module):
     def save_lerobot(self, folder: str | Path) -> Path:
         """The ACT model in LeRobot's layout (config.json + model.safetensors), for `ACTPolicy.from_pretrained`.
         LeRobot keeps normalisation in its processors: this policy's statistics are in its own checkpoint."""
+        import copy
+
         folder = Path(folder)
-        self.act.save_pretrained(folder)
+        act = copy.deepcopy(self.act).eval()
+        swap_norms(act.model.backbone, to_trainable=False)  # LeRobot's ACT builds frozen batch norm
+        act.save_pretrained(folder)
         return folder
+
+
+BACKBONE_NORMS = ("auto", "frozen", "batch")
+
+
+def swap_norms(module: nn.Module, to_trainable: bool) -> None:
+    """In place: every frozen batch norm of `module` as a trainable one with the same statistics (`to_trainable`),
+    or back (the statistics the trainable one has learnt, frozen: the same function as it computes in eval mode)."""
+    from torchvision.ops.misc import FrozenBatchNorm2d
+
+    for name, child in module.named_children():
+        if to_trainable and isinstance(child, FrozenBatchNorm2d):
+            new = nn.BatchNorm2d(child.weight.numel(), eps=child.eps)
+        elif not to_trainable and isinstance(child, nn.BatchNorm2d):
+            new = FrozenBatchNorm2d(child.num_features, eps=child.eps)
+        else:
+            swap_norms(child, to_trainable)
+            continue
+        with torch.no_grad():
+            for key in ("weight", "bias", "running_mean", "running_var"):
+                getattr(new, key).copy_(getattr(child, key))
+        setattr(module, name, new)
 
 
 def load_resnet_weights(backbone: nn.Module, path: str) -> None:

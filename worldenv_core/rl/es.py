@@ -72,13 +72,22 @@ def antithetic_members(seeds: list[int], sigma: float) -> list[tuple[int, float]
     return [(int(s), sign * float(sigma)) for s in seeds for sign in (1.0, -1.0)]
 
 
-def member_returns(success: torch.Tensor, steps: torch.Tensor, discount: float = 1.0) -> torch.Tensor:
-    """(contexts, members) outcomes -> each member's mean return over the contexts: discount**steps for a
-    success (1 with discount 1: the benchmark's success), 0 for a failure."""
+def context_returns(success: torch.Tensor, steps: torch.Tensor, discount: float = 1.0,
+                    score: torch.Tensor | None = None) -> torch.Tensor:
+    """(contexts, members) outcomes -> each rollout's return: discount**steps for a success (1 with discount 1:
+    the benchmark's success), 0 for a failure. `score` (the imagined route's `rl.es_return=score`): the reflector's
+    R where the rollout ended takes the success's place, so a rollout that came closer to success returns more
+    although no member crossed the threshold."""
     if not 0 < discount <= 1:
         raise ValueError(f"rl.es_discount must be in (0, 1], got {discount}")
-    ret = success.float() * torch.as_tensor(discount, dtype=torch.float64).pow(steps.double()).float()
-    return ret.mean(0)
+    value = success.float() if score is None else score.float()
+    return value * torch.as_tensor(discount, dtype=torch.float64).pow(steps.double()).float()
+
+
+def member_returns(success: torch.Tensor, steps: torch.Tensor, discount: float = 1.0,
+                   score: torch.Tensor | None = None) -> torch.Tensor:
+    """(contexts, members) outcomes -> each member's mean return over the contexts (`context_returns`)."""
+    return context_returns(success, steps, discount, score).mean(0)
 
 
 def pair_stats(seeds: list[int], returns: torch.Tensor,
@@ -123,23 +132,31 @@ def ars_update(policy: torch.nn.Module, seeds: list[int], returns: torch.Tensor,
     return {**stats, "es_step_rms": (sq / moved) ** 0.5}  # the step's size relative to each tensor's RMS
 
 
-LEDGER_SETTINGS = ("es_sigma", "es_step", "es_top", "es_discount", "es_parameters")
+LEDGER_SETTINGS = ("es_sigma", "es_step", "es_top", "es_discount", "es_parameters", "es_return")
+# what a ledger written before a setting existed was made with
+LEDGER_DEFAULTS = {"es_return": "success"}
+RETURNS = ("success", "score")  # rl.es_return
+SCORE_APART = 0.05  # two members' reflector scores from one context this far apart tell them apart (`mixed_contexts`)
 
 
-def mixed_contexts(success: torch.Tensor) -> int:
+def mixed_contexts(success: torch.Tensor, score: torch.Tensor | None = None) -> int:
     """(contexts, members) outcomes -> how many contexts told any two members apart: the starts a step's
-    direction is learnt from (one where every member succeeded, or every one failed, says nothing)."""
+    direction is learnt from (one where every member succeeded, or every one failed, says nothing). With `score`
+    (`rl.es_return=score`): contexts whose members' scores spread by at least `SCORE_APART`."""
+    if score is not None:
+        return int(((score.float().max(1).values - score.float().min(1).values) >= SCORE_APART).sum())
     s = success.bool()
     return int((s.any(1) & ~s.all(1)).sum())
 
 
 def write_ledger_entry(folder, iteration: int, contexts: list[int], seeds: list[int], success: torch.Tensor,
                        steps: torch.Tensor, returns: torch.Tensor, rl, rolled_back: bool = False,
-                       no_step: bool = False) -> None:
+                       no_step: bool = False, score: torch.Tensor | None = None) -> None:
     """One iteration's record (whole or absent): its contexts, directions, every member's outcome from every
     context (contexts x members) and the settings of its step, enough to redo the step (`replay_ledger`);
     `rolled_back`: the step was made and undone (the paired-replay guard); `no_step`: none was made (too few
-    contexts told the members apart, `rl.es_min_mixed`); a replay skips both."""
+    contexts told the members apart, `rl.es_min_mixed`); a replay skips both. `score`: the reflector's R where
+    each rollout ended (`rl.es_return=score`), kept beside the verdicts."""
     import json
     from pathlib import Path
 
@@ -147,7 +164,9 @@ def write_ledger_entry(folder, iteration: int, contexts: list[int], seeds: list[
 
     entry = {"iteration": int(iteration), "contexts": [int(c) for c in contexts], "seeds": [int(s) for s in seeds],
              "success": success.int().tolist(), "steps": steps.int().tolist(), "returns": returns.tolist(),
-             **{k: rl.get(k) for k in LEDGER_SETTINGS}, **({"rolled_back": True} if rolled_back else {}),
+             **({"score": [[round(float(v), 4) for v in row] for row in score.tolist()]} if score is not None else {}),
+             **{k: rl.get(k, LEDGER_DEFAULTS.get(k)) for k in LEDGER_SETTINGS},
+             **({"rolled_back": True} if rolled_back else {}),
              **({"no_step": True} if no_step else {})}
     Path(folder).mkdir(parents=True, exist_ok=True)
     write_text_atomic(Path(folder) / f"iter_{int(iteration):04d}.json", json.dumps(entry))

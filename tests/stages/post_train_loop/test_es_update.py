@@ -99,3 +99,31 @@ def test_a_campaign_folder_is_kept_current_and_an_interrupted_sitting_still_fill
     for other in ({**rl, "es_ledger_from": None}, {**rl, "policy_update": "ppo"}):
         with campaign_ledger(work, OmegaConf.create(other)) as keep:
             assert keep is None
+
+
+def test_the_score_return_steps_where_no_verdict_splits_and_the_ledger_keeps_the_scores(tmp_path):
+    """rl.es_return=score: each member's return is its rollouts' graded verdict (the reflector's R), so the step
+    follows the members' scores although every verdict is the same; the ledger keeps the scores beside the verdicts
+    and the settings, and replays the step exactly."""
+    class NoSuccessEnv(ActionRewardEnv):  # the graded reward as before, but no rollout is ever judged a success
+        def step(self, actions, generator=None):
+            state = super().step(actions, generator)
+            state.by_reflector = torch.zeros_like(state.done)
+            return state
+
+    for ret, moves in (("success", False), ("score", True)):
+        rl = OmegaConf.create({**RL, "es_return": ret, "es_min_mixed": 1})
+        policy, contexts, encoder = _policy_and_contexts(4)
+        start = copy.deepcopy(policy)
+        collect = lambda base, picks, members: es.imagined_member_outcomes(  # noqa: E731
+            base, NoSuccessEnv(), [contexts[i] for i in picks], members, encoder)
+        ledger = tmp_path / ret
+        stats = (phase := es_phase(policy, collect, 4, rl, 0, ledger)).step(next(iter(phase.batches(0))))
+        moved = not all(a.equal(b) for a, b in zip(policy.parameters(), start.parameters()))
+        assert moved == moves and (stats["es_mixed_contexts"] > 0) == moves
+        (entry,) = es.read_ledger(ledger)
+        assert entry["es_return"] == ret and ("score" in entry) == moves
+        if moves:
+            assert torch.allclose(torch.tensor(entry["returns"]), torch.tensor(entry["score"]).mean(0), atol=1e-3)
+        replayed = es.replay_ledger(copy.deepcopy(start), [entry])
+        assert all(a.equal(b) for a, b in zip(replayed.parameters(), policy.parameters()))

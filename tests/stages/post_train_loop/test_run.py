@@ -508,7 +508,9 @@ def test_evolution_strategies_in_weight_space_on_real_and_imagined_rollouts(trai
                             ("rl.es_discount=1.5", r"rl.es_discount must be in \(0, 1\]"),
                             ("rl.es_parameters=all", "rl.es_parameters must be one of"),
                             ("rl.task_focus=2", r"rl.task_focus must be null \(every task\) or an int in 1..1"),
-                            ("rl.es_min_mixed=-1", "rl.es_min_mixed")):
+                            ("rl.es_min_mixed=-1", "rl.es_min_mixed"),
+                            ("rl.es_return=reward", "rl.es_return must be one of"),
+                            ("rl.es_return=score", "rl.es_return=score needs env=imagined")):
         with pytest.raises(ConfigError, match=match):
             post_train_loop(cfg("post_train_loop", exp, *es_args, override))
     # the imagined route: the members' rollouts as one batch through the world model, the reflector's verdict

@@ -55,7 +55,9 @@ def test_the_project_checkpoint_folder_and_lerobots_layout_read_back_the_same_po
 
     from worldenv_core.models.checkpoint import load_checkpoint, save_model
 
-    m = policy()
+    m = policy().train()
+    m(*inputs(b=4, seed=2))  # the trainable batch norm's statistics move off the identity
+    m.eval()
     m.proprio_norm.set_stats(torch.arange(7.0), torch.full((7,), 2.0))
     m.action_norm.set_stats(torch.ones(7), torch.full((7,), 0.5))
     config = {"_target_": "worldenv_core.models.lerobot_act.ACTLaplacePolicy", **TINY}
@@ -66,7 +68,7 @@ def test_the_project_checkpoint_folder_and_lerobots_layout_read_back_the_same_po
         assert torch.allclose(a, b, atol=1e-6)
     assert torch.allclose(back.unnormalize_actions(torch.zeros(7)), torch.ones(7))
 
-    lerobot = ACTPolicy.from_pretrained(m.save_lerobot(tmp_path / "lerobot")).eval()
+    lerobot = ACTPolicy.from_pretrained(m.save_lerobot(tmp_path / "lerobot")).eval()  # frozen batch norm, folded
     chunk, _ = lerobot.model(m.inputs(*inputs()))
     assert torch.allclose(chunk, m(*inputs())[0], atol=1e-6)
 
@@ -82,3 +84,25 @@ def test_backbone_weights_come_from_a_local_file_only(tmp_path):
     torch.save({"unrelated": torch.zeros(1)}, tmp_path / "other.pth")
     with pytest.raises(ValueError, match="no weights of ACT's ResNet"):
         ACTLaplacePolicy(**TINY, backbone_weights=str(tmp_path / "other.pth"))
+
+
+def test_an_untrained_backbone_normalises_with_trainable_batch_norm_and_a_pretrained_one_keeps_frozen(tmp_path):
+    """LeRobot's frozen batch norm is the identity on an untrained ResNet, so training could not keep its activations
+    in range: untrained, the policy trains batch norm (its statistics follow the data); pretrained, it is LeRobot's."""
+    import torchvision
+    from torchvision.ops.misc import FrozenBatchNorm2d
+
+    def norms(m):
+        return {type(x) for x in m.act.model.backbone.modules() if isinstance(x, (FrozenBatchNorm2d, torch.nn.BatchNorm2d))}
+
+    m = policy().train()
+    assert norms(m) == {torch.nn.BatchNorm2d}
+    before = m.act.model.backbone.bn1.running_mean.clone()
+    m(*inputs())
+    assert not torch.equal(before, m.act.model.backbone.bn1.running_mean)
+    assert m.act.model.backbone.bn1.weight.requires_grad
+    torch.save(torchvision.models.resnet18(weights=None).state_dict(), tmp_path / "resnet18.pth")
+    assert norms(ACTLaplacePolicy(**TINY, backbone_weights=str(tmp_path / "resnet18.pth"))) == {FrozenBatchNorm2d}
+    assert norms(ACTLaplacePolicy(**TINY, backbone_norm="frozen")) == {FrozenBatchNorm2d}
+    with pytest.raises(ValueError, match="policy.backbone_norm must be one of"):
+        ACTLaplacePolicy(**TINY, backbone_norm="group")

@@ -59,6 +59,9 @@ def test_member_returns_are_successes_or_discounted_successes():
     assert torch.allclose(r, torch.tensor([(0.9 ** 10 + 0.9 ** 20) / 2, 0.9 ** 5 / 2]))
     with pytest.raises(ValueError, match="es_discount"):
         es.member_returns(success, steps, 0.0)
+    score = torch.tensor([[0.95, 0.4], [0.9, 0.1]])  # rl.es_return=score: the reflector's R replaces the verdict
+    assert torch.allclose(es.member_returns(success, steps, score=score), torch.tensor([0.925, 0.25]))
+    assert torch.allclose(es.context_returns(success, steps, 0.9, score)[0], torch.tensor([0.95 * 0.9 ** 10, 0.4 * 0.9 ** 50]))
 
 
 def test_ars_climbs_a_smooth_objective_and_makes_no_step_without_a_difference():
@@ -94,6 +97,9 @@ def test_ars_climbs_a_smooth_objective_and_makes_no_step_without_a_difference():
 def test_a_context_tells_members_apart_only_where_their_outcomes_differ():
     success = torch.tensor([[1, 1, 1, 1], [0, 0, 0, 0], [1, 0, 1, 1], [0, 0, 1, 0]])
     assert es.mixed_contexts(success) == 2 and es.mixed_contexts(success[:2]) == 0
+    # scores: a context tells members apart where their scores spread by SCORE_APART or more, verdicts aside
+    score = torch.tensor([[0.9, 0.9, 0.9, 0.9], [0.1, 0.1 + es.SCORE_APART, 0.1, 0.1], [0.5, 0.52, 0.5, 0.5], [0.2, 0.2, 0.2, 0.8]])
+    assert es.mixed_contexts(success, score) == 2
 
 
 def test_the_ledger_rebuilds_the_runs_weights_from_the_starting_policy(tmp_path):
