@@ -78,8 +78,11 @@ def action_step(model, optimizer, encoder, device, shift: int, imagined: Imagine
 
 
 def scale_step(model, optimizer, encoder, device, imagined: ImaginedProprio | None = None):
-    """Phase 2: the scale head alone, Laplace NLL on frozen features and a fixed mu (eq. 8)."""
+    """Phase 2: the scale head alone, Laplace NLL on frozen features and a fixed mu (eq. 8). The trunk runs in
+    eval mode, as in a rollout: a dropout mask (ACT's 0.1) would widen the residuals beta is fitted to, and batch
+    norm would go on moving its statistics (and so mu) while the trunk is meant to be frozen."""
     def step(batch) -> dict:
+        model.eval()  # the Trainer sets train mode before every step; the scale head has no dropout or norm
         images, proprio, lang = _batch_inputs(model, batch, encoder, device, imagined=imagined)
         with torch.no_grad():  # features and mu stay fixed: only the scale head learns
             f = model.features(images, proprio, lang)

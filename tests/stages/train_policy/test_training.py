@@ -45,3 +45,31 @@ def test_longer_integrations_drift_and_the_draw_repeats_for_the_same_batch():
     mixed = ImaginedProprio(eps, fraction=0.5, max_steps=100, seed=1)(batch(eps, [(0, t) for t in range(1, 101)]))
     kept = (mixed == batch(eps, [(0, t) for t in range(1, 101)])["proprio"]).all(dim=1).float().mean()
     assert 0.3 < kept < 0.7
+
+
+def test_the_scale_heads_phase_leaves_the_trunk_as_it_was_with_dropout_and_batch_norm():
+    """ACT has dropout and (untrained backbone) batch norm: fitted in train mode, beta would follow dropout's
+    residuals and the trunk's norm statistics would keep moving. Phase 2 changes only the scale head."""
+    from stages.train_policy.training import scale_step
+    from tests.worldenv_core.models.test_lerobot_act import TINY
+    from worldenv_core.models.lerobot_act import ACTLaplacePolicy
+
+    torch.manual_seed(0)
+    model = ACTLaplacePolicy(**{**TINY, "dropout": 0.5}).train()  # as the Trainer hands it to a step
+    trunk = {k: v.clone() for k, v in model.state_dict().items() if not k.startswith("scale_head")}
+    head = [p.clone() for p in model.scale_head.parameters()]
+    optimizer = torch.optim.Adam(model.scale_head.parameters(), lr=1e-2)
+    g = torch.Generator().manual_seed(1)
+    b = {"images": {"agentview": torch.randint(0, 256, (4, 3, 32, 32), dtype=torch.uint8, generator=g)},
+         "proprio": torch.randn(4, 7, generator=g), "instruction": ["a", "b", "c", "d"],
+         "actions": torch.randn(4, 4, 7, generator=g), "action_is_pad": torch.zeros(4, 4, dtype=torch.bool)}
+    encoder = lambda texts: torch.randn(len(texts), 384, generator=torch.Generator().manual_seed(2))  # noqa: E731
+    step = scale_step(model, optimizer, encoder, "cpu")
+    first = step(b)
+    for _ in range(2):
+        model.train()
+        step(b)
+    assert all(torch.equal(v, model.state_dict()[k]) for k, v in trunk.items())  # norm statistics included
+    assert any(not torch.equal(p, q) for p, q in zip(head, model.scale_head.parameters()))
+    model.train()
+    assert step(b)["nll"] < first["nll"]  # deterministic features: the same batch's NLL falls as the head learns
