@@ -18,6 +18,7 @@ from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.data.selection import MissingEpisodesError, collected_episodes, episode_key
 from worldenv_core.envs.recording import cached_env
 from worldenv_core.envs.replay import RealStart, StartJob, restore, unreplayable
+from worldenv_core.envs.replay_checks import replay_checks_file
 from worldenv_core.errors import ConfigError
 from worldenv_core.imagination.env import Context, check_depth, mid_episode_frames
 from worldenv_core.models.checkpoint import read_config
@@ -97,7 +98,8 @@ def build_contexts(cfg, contract: TaskContract, held: list[Path]) -> tuple[list[
         for f in starts + mid_episode_frames(ep.success, ep.length, c.episode_frames, check_depth(c.depth)):
             episodes.append(PairedContext(RealStart(task_id=t, seed=ep.meta.seed, episode=str(path), frame=f),
                                           Context.from_episode(ep, camera, f, contract.chunk), "episode"))
-    errors = unreplayable(contract, [x.start for x in episodes], workers=cfg.workers, launcher=cfg.launcher,
+    errors = unreplayable(contract, [x.start for x in episodes], cache=replay_checks_file(cfg),
+                          workers=cfg.workers, launcher=cfg.launcher,
                           ray_address=cfg.ray_address, progress=cfg.progress)
     for key, error in errors.items():
         log.warning("context dropped: %s", error)

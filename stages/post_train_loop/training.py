@@ -24,6 +24,7 @@ from worldenv_core import distributed
 from worldenv_core.envs.tasks import contract_task_ids
 from worldenv_core.contract import TaskContract
 from worldenv_core.envs.replay import RealStart, unreplayable
+from worldenv_core.envs.replay_checks import replay_checks_file
 from worldenv_core.errors import ConfigError
 from worldenv_core.imagination.context_pack import ContextPack, write_context_pack
 from worldenv_core.imagination.env import WHOLE_DEPTH, Context, build_imagined_env, context_depth, mid_episode_frames
@@ -277,7 +278,7 @@ def chosen(cfg: DictConfig, stage, contract: TaskContract, starts: list[RealStar
     before any rollout."""
     task_ids = set(contract_task_ids(contract))
     mine = [i for i, st in enumerate(starts) if st.task_id in task_ids]
-    errors = unreplayable(contract, [starts[i] for i in mine], workers=cfg.eval.workers,
+    errors = unreplayable(contract, [starts[i] for i in mine], cache=replay_checks_file(cfg), workers=cfg.eval.workers,
                           progress=cfg.progress) if cfg.rl.mid_episode_frames else {}
     for error in errors.values():
         log.warning("context dropped: %s", error)

@@ -97,16 +97,22 @@ def replays(job: StartJob) -> dict:
     return {"start": job.start, "error": None}
 
 
-def unreplayable(contract: TaskContract, starts: list[RealStart], **run_kw) -> dict[str, str]:
+def unreplayable(contract: TaskContract, starts: list[RealStart], cache=None, **run_kw) -> dict[str, str]:
     """start key -> error, for the mid-episode starts whose recorded prefix does not replay to its
     recorded state (a few demos do not: their contact is not reproducible from the seed). Checked
-    before any rollout so such a start is dropped, not met half way through a run. `run_kw`:
-    `run_jobs`' workers, launcher, ray_address, progress."""
+    before any rollout so such a start is dropped, not met half way through a run. `cache`: a file of
+    checks kept between sittings (`replay_checks.ReplayChecks`): only starts it has no valid answer for
+    are replayed. `run_kw`: `run_jobs`' workers, launcher, ray_address, progress."""
+    from worldenv_core.envs.replay_checks import MISSING, ReplayChecks
     from worldenv_core.parallel import run_jobs
 
-    jobs = [StartJob(contract, s) for s in starts if s.episode is not None and s.frame]
+    kept = ReplayChecks(cache)
+    known = {s.key: kept.get(s) for s in starts if s.episode is not None and s.frame}
+    jobs = [StartJob(contract, s) for s in starts if known.get(s.key, None) is MISSING]
     checks = run_jobs(replays, jobs, desc="context replays", unit="ctx", **run_kw) if jobs else []
-    return {r["start"].key: r["error"] for r in checks if r["error"]}
+    kept.put(checks)
+    errors = {k: e for k, e in known.items() if e is not MISSING and e}
+    return {**errors, **{r["start"].key: r["error"] for r in checks if r["error"]}}
 
 
 def restore(env: LiberoEnv, start: RealStart, tolerance: float = 1e-3) -> Frame:
