@@ -66,7 +66,8 @@ def es_phase(policy, collect, n_contexts: int | None, rl, seed: int, ledger: Pat
     is undone, and the ledger says so. `rl.task_focus` (of the `n_tasks` trained on): each iteration's
     contexts from that many tasks, in turn (listed contexts, e.g. keyframes: `context_tasks` names each one's task
     position). `rl.es_min_mixed`: no step from an iteration in which fewer
-    contexts than that told any two members apart (a full-size step would follow one or two starts' luck)."""
+    contexts than that told any two members apart by their return (a full-size step would follow one or two
+    starts' luck)."""
     def step(item) -> dict:
         it, g = item
         t0 = time.perf_counter()
@@ -76,10 +77,11 @@ def es_phase(policy, collect, n_contexts: int | None, rl, seed: int, ledger: Pat
         members = es.antithetic_members(seeds, rl.es_sigma)
         out = collect(copy.deepcopy(policy).eval(), picks, members)
         score = out["reward"] if rl.get("es_return", "success") == "score" else None
-        returns = es.member_returns(out["success"], out["steps"], rl.es_discount, score)
+        per_context = es.context_returns(out["success"], out["steps"], rl.es_discount, score)
+        returns = per_context.mean(0)
         t_update = time.perf_counter()
         before = [p.detach().clone() for _, p in es.es_parameters(policy, rl.es_parameters)] if guard else None
-        mixed = es.mixed_contexts(out["success"], score)
+        mixed = es.mixed_contexts(per_context, es.SCORE_APART if score is not None else 0.0)
         if mixed >= rl.get("es_min_mixed", 1):
             stats = es.ars_update(policy, seeds, returns, rl.es_step, rl.get("es_top"), rl.es_parameters)
         else:  # made from too few starts to be the reward's direction: the ledger says no step was taken

@@ -136,17 +136,16 @@ LEDGER_SETTINGS = ("es_sigma", "es_step", "es_top", "es_discount", "es_parameter
 # what a ledger written before a setting existed was made with
 LEDGER_DEFAULTS = {"es_return": "success"}
 RETURNS = ("success", "score")  # rl.es_return
-SCORE_APART = 0.05  # two members' reflector scores from one context this far apart tell them apart (`mixed_contexts`)
+SCORE_APART = 0.05  # two members' graded returns from one context this far apart tell them apart (`mixed_contexts`)
 
 
-def mixed_contexts(success: torch.Tensor, score: torch.Tensor | None = None) -> int:
-    """(contexts, members) outcomes -> how many contexts told any two members apart: the starts a step's
-    direction is learnt from (one where every member succeeded, or every one failed, says nothing). With `score`
-    (`rl.es_return=score`): contexts whose members' scores spread by at least `SCORE_APART`."""
-    if score is not None:
-        return int(((score.float().max(1).values - score.float().min(1).values) >= SCORE_APART).sum())
-    s = success.bool()
-    return int((s.any(1) & ~s.all(1)).sum())
+def mixed_contexts(values: torch.Tensor, apart: float = 0.0) -> int:
+    """(contexts, members) outcomes or returns (`context_returns`) -> how many contexts told any two members
+    apart: the starts a step's direction is learnt from (one where every member succeeded, or every one failed,
+    says nothing). With a discounted return, members that all succeeded are told apart by when; with the graded
+    score (`rl.es_return=score`), by a spread above `apart` (`SCORE_APART`)."""
+    v = values.float()
+    return int(((v.max(1).values - v.min(1).values) > apart).sum())
 
 
 def write_ledger_entry(folder, iteration: int, contexts: list[int], seeds: list[int], success: torch.Tensor,

@@ -97,9 +97,14 @@ def test_ars_climbs_a_smooth_objective_and_makes_no_step_without_a_difference():
 def test_a_context_tells_members_apart_only_where_their_outcomes_differ():
     success = torch.tensor([[1, 1, 1, 1], [0, 0, 0, 0], [1, 0, 1, 1], [0, 0, 1, 0]])
     assert es.mixed_contexts(success) == 2 and es.mixed_contexts(success[:2]) == 0
-    # scores: a context tells members apart where their scores spread by SCORE_APART or more, verdicts aside
-    score = torch.tensor([[0.9, 0.9, 0.9, 0.9], [0.1, 0.1 + es.SCORE_APART, 0.1, 0.1], [0.5, 0.52, 0.5, 0.5], [0.2, 0.2, 0.2, 0.8]])
-    assert es.mixed_contexts(success, score) == 2
+    # a discounted return tells apart members that all succeeded, by when; not those that all failed
+    steps = torch.tensor([[40, 48, 40, 40], [64, 64, 64, 64], [40, 64, 40, 40], [64, 64, 56, 64]])
+    assert es.mixed_contexts(es.context_returns(success.bool(), steps, 0.97)) == 3
+    assert es.mixed_contexts(es.context_returns(success.bool(), steps, 1.0)) == 2
+    # graded scores: a spread above SCORE_APART, verdicts aside
+    score = torch.tensor([[0.9, 0.9, 0.9, 0.9], [0.1, 0.1 + 2 * es.SCORE_APART, 0.1, 0.1], [0.5, 0.52, 0.5, 0.5],
+                          [0.2, 0.2, 0.2, 0.8]])
+    assert es.mixed_contexts(score, es.SCORE_APART) == 2
 
 
 def test_the_ledger_rebuilds_the_runs_weights_from_the_starting_policy(tmp_path):
