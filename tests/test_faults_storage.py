@@ -223,8 +223,13 @@ def test_an_interrupt_during_a_checkpoint_save_leaves_the_last_complete_one(tmp_
         signal.raise_signal(signal.SIGINT)
 
     monkeypatch.setattr(torch, "save", interrupted)
-    with pytest.raises(KeyboardInterrupt):
-        ckpts.save(2, model, spec, {}, {"opt": opt}, [{"step": 2}])
+    # Ctrl-C's own handler: a suite started in the background by a non-interactive shell inherits SIGINT ignored
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            ckpts.save(2, model, spec, {}, {"opt": opt}, [{"step": 2}])
+    finally:
+        signal.signal(signal.SIGINT, before)
     monkeypatch.undo()
     assert sorted(p.name for p in ckpts.dir.iterdir()) == ["0000001", "last"]
     assert ckpts.restore(model, {"opt": opt})[0] == 1
