@@ -108,10 +108,12 @@ def main(argv: list[str] | None = None) -> None:
         except FileNotFoundError as e:
             raise ConfigError(f"--frames: {e}") from None
         policies = {p: load_checkpoint(p, "policy")[0] for p in args.policy}
-        encoder, rows = InstructionEncoder(), {}
+        encoder, rows, read = InstructionEncoder(), {}, {}
         for path, policy in policies.items():
-            frames = policy_frames(files, policy.cameras, encoder, every=args.every)
-            rows[path] = input_reliance(policy, frames, args.seed)
+            cams = tuple(policy.cameras)  # policies that look at the same cameras share one read of the episodes
+            if cams not in read:
+                read[cams] = policy_frames(files, list(cams), encoder, every=args.every)
+            rows[path] = input_reliance(policy, read[cams], args.seed)
         print(table(rows))
         if args.json:
             write_text_atomic(Path(args.json), json.dumps(rows, indent=1))

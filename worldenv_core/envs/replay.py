@@ -108,7 +108,7 @@ def unreplayable(contract: TaskContract, starts: list[RealStart], cache=None, **
 
     kept = ReplayChecks(cache)
     known = {s.key: kept.get(s) for s in starts if s.episode is not None and s.frame}
-    jobs = [StartJob(contract, s) for s in starts if known.get(s.key, None) is MISSING]
+    jobs = [StartJob(contract, s) for s in starts if known.get(s.key) is MISSING]
     checks = run_jobs(replays, jobs, desc="context replays", unit="ctx", **run_kw) if jobs else []
     kept.put(checks)
     errors = {k: e for k, e in known.items() if e is not MISSING and e}

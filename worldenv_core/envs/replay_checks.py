@@ -1,7 +1,7 @@
 """Replay checks kept between sittings: whether a recorded episode's prefix replays to its recorded state.
 
 `replay.unreplayable` replays every mid-episode start before a run uses it. The answer is a fact of the episode
-file and the simulator, and 200 keyframes cost 7.5 minutes of physics on one core, paid again each time a
+file and the simulator, and 200 keyframes cost about 8 minutes of physics on one core, paid again each time a
 campaign resumes. A record keeps its file's size and modification time and the simulator's versions; a record
 that no longer matches (the file rewritten, MuJoCo or robosuite upgraded) is checked again. The file is rewritten
 whole (temporary name, then rename) and merged with what is on disk, so two runs sharing it lose nothing worse
