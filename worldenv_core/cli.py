@@ -19,7 +19,7 @@ from worldenv_core.envs.tasks import UnknownTaskError
 from worldenv_core.manifest import ArtefactError
 from worldenv_core.models.checkpoint import CheckpointError
 from worldenv_core.contract import ContractError
-from worldenv_core.errors import ConfigError, Interrupted
+from worldenv_core.errors import ConfigError, Interrupted, request_stop
 
 # Bad settings and bad or missing artefacts: each message names what is wrong and how to fix it.
 USER_ERRORS = (ConfigError, UnknownTaskError, ArtefactError, CheckpointError, ContractError, CorruptEpisodeError)
@@ -57,9 +57,13 @@ def terminate_as_interrupt() -> None:
     """SIGTERM (a scheduler's or `kill`'s stop) ends the run as Ctrl-C does: the same line, the
     same clean-up, exit status 143."""
     def stop(signum, frame):
+        request_stop(signum)  # kept: the interrupt below can be swallowed by a library's bare except
         raise Interrupted(signum)
 
+    request_stop(None)
     signal.signal(signal.SIGTERM, stop)
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # Ctrl-C the same way; an ignored SIGINT stays so
+        signal.signal(signal.SIGINT, stop)
 
 
 def stage_of_main() -> str | None:

@@ -15,6 +15,8 @@ from typing import Any
 
 from tqdm import tqdm
 
+from worldenv_core.errors import raise_if_stopped
+
 log = logging.getLogger(__name__)
 LAUNCHERS = ("local", "ray")
 
@@ -91,9 +93,10 @@ def run_jobs(
             results = (fn(j) for j in jobs)
         else:
             results = _pool_results(fn, jobs, workers)
-        for r in results:
+        for done, r in enumerate(results, 1):
             bar.update(1)
             yield r
+            raise_if_stopped(f"after {done} of {len(jobs)} {desc}")  # before the next job: see errors.request_stop
     finally:
         bar.close()
 

@@ -1,10 +1,14 @@
 import math
 import os
+import signal
 import subprocess
 import sys
+import time
 
 import pytest
 
+from worldenv_core.cli import terminate_as_interrupt
+from worldenv_core.errors import Interrupted, request_stop
 from worldenv_core.parallel import run_jobs
 
 
@@ -40,3 +44,32 @@ def test_limit_threads_caps_torch_and_libraries_loaded_later():
     env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "MKL_NUM_THREADS")}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["1", "1", "1"]
+
+
+def test_a_stop_whose_interrupt_a_library_swallowed_still_ends_the_jobs():
+    """LIBERO builds its scenes inside bare `except:` blocks, so a SIGTERM's interrupt raised there is lost (a
+    collection went on for minutes): the stop is recorded too, and run_jobs ends before the next job."""
+    ran = []
+
+    def job(i):
+        ran.append(i)
+        if i == 1:
+            try:
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(5)  # the handler raises here, inside the try
+            except:  # noqa: E722 - what LIBERO's scene code does
+                pass
+        return i
+
+    before = signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)
+    try:
+        terminate_as_interrupt()
+        t0 = time.perf_counter()
+        with pytest.raises(Interrupted, match="after 2 of 4 jobs") as stopped:
+            list(run_jobs(job, range(4), workers=1, progress=False))
+        assert time.perf_counter() - t0 < 4  # the sleep was cut short: the interrupt was raised, then swallowed
+    finally:
+        signal.signal(signal.SIGTERM, before[0])
+        signal.signal(signal.SIGINT, before[1])
+        request_stop(None)
+    assert ran == [0, 1] and stopped.value.signum == signal.SIGTERM

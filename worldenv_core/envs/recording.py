@@ -17,6 +17,7 @@ import numpy as np
 
 from worldenv_core.envs.libero_env import Frame, LiberoEnv
 from worldenv_core.envs.tasks import suite_seed_id
+from worldenv_core.errors import raise_if_stopped
 
 log = logging.getLogger(__name__)
 
@@ -87,6 +88,7 @@ def rollout(
     success_at = None
     try:
         for t in range(max_steps):
+            raise_if_stopped()  # a stop whose interrupt LIBERO's bare excepts swallowed ends the episode here
             if success_at is None and frame.success:
                 success_at = t
             if success_at is not None and stop_on_success and t - success_at >= post_success_steps:
