@@ -229,3 +229,14 @@ def test_a_lerobot_act_policy_trains_and_evaluates_through_the_same_stages(exper
     after, _ = load_checkpoint(trained, "policy")
     assert type(after).__name__ == "ACTLaplacePolicy" and (trained / "lerobot" / "config.json").exists()
     assert ACTPolicy.from_pretrained(trained / "lerobot") is not None  # the post-trained policy, LeRobot's layout
+    # and by the recipe that learns (ES in weight space): members of ACT's weights, the scale head untouched
+    es_run = post_train_loop(cfg("post_train_loop", exp, "env=real", "rl=es", f"policy_from={folder}", "rl.iterations=1",
+                                 "rl.contexts_per_iteration=1", "rl.es_pairs=1", "rl.horizon=8", "eval.every=0",
+                                 "eval.init_states=0", "eval.workers=1", "progress=false"))
+    assert es_run["train_real_episodes"] == 2
+    rec = Manifest(exp).latest("post_train_loop", task="tiny", env="real")
+    stepped = next(p for p in Manifest(exp).resolve(rec) if p.name == "model.safetensors").parent
+    after, _ = load_checkpoint(stepped, "policy")
+    moved = {n for (n, a), (_, b) in zip(policy.named_parameters(), after.named_parameters()) if not a.equal(b)}
+    assert type(after).__name__ == "ACTLaplacePolicy" and not any(n.startswith("scale_head.") for n in moved)
+    assert ACTPolicy.from_pretrained(stepped / "lerobot") is not None
