@@ -41,6 +41,10 @@ def ledger_policy(policy: str | Path, ledger: str | Path, out: str | Path, upto:
     """`policy` moved by `ledger`'s iterations 1..`upto` (all by default), saved at `out`. -> `out`"""
     entries, upto = ledger_entries(ledger, upto)
     model, _ = load_checkpoint(policy, "policy")
+    try:
+        es.check_start(ledger, es.weights_digest(model))
+    except ValueError as e:
+        raise ConfigError(f"--ledger {ledger} with --policy {policy}: {e}") from None
     es.replay_ledger(model, entries, upto)
     config = read_config(policy)
     meta = {**config.get("meta", {}), "es_ledger": Path(ledger).name, "es_iterations": upto}

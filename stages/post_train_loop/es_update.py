@@ -130,18 +130,24 @@ IN_PROGRESS = "in_progress.json"  # the finished rollouts of the iteration a sit
 
 
 def seed_from_ledger(work: Path, ledger_from: str | Path, policy, optimizers: dict, model_config: dict, meta: dict,
-                     rl) -> int:
+                     rl, start: str | None = None) -> int:
     """`rl.es_ledger_from=<folder>` on a work dir with no checkpoint: the starting policy moved by the folder's
     ledger (`iter_NNNN.json`, `es.replay_ledger`) is checkpointed at its last iteration, with the run's history
     as far as the folder's `history.json` holds it, so the same command continues the run from there (a
     campaign's ledger kept in the repository outlives a machine's `outputs/`). The ledger's settings must be
     this run's; a folder that does not exist yet (the campaign's first sitting) seeds nothing. The finished rollouts
     of the iteration that was under way (`in_progress.json`) go back into the journal, where only the same jobs
-    under the same behaviour weights take them. -> the iteration it starts from (0: nothing seeded)."""
+    under the same behaviour weights take them. `start`: the starting policy's `es.weights_digest`, checked against
+    the one the folder names. -> the iteration it starts from (0: nothing seeded)."""
+    folder = Path(ledger_from)
+    if start is not None and folder.exists():
+        try:
+            es.check_start(folder, start)
+        except ValueError as e:
+            raise ConfigError(f"rl.es_ledger_from={ledger_from}: {e}") from None
     checkpoints = Checkpoints(work)
     if checkpoints.last is not None:
         return 0
-    folder = Path(ledger_from)
     if not folder.exists():  # a campaign's first sitting: the command names where its ledger will be kept
         log.warning("rl.es_ledger_from=%s does not exist yet: the run starts from the starting policy", folder)
         return 0
@@ -178,11 +184,13 @@ def seed_from_ledger(work: Path, ledger_from: str | Path, policy, optimizers: di
     return done
 
 
-def export_ledger(work: Path, to: Path) -> Path:
+def export_ledger(work: Path, to: Path, start: str | None = None) -> Path:
     """A run's ledger and history (its last checkpoint's) copied to `to`, what `seed_from_ledger` reads, with the
     outcomes of the iteration under way (`in_progress.json`): an iteration of the whole suite is 1,280 episodes,
     more than an hour of these cores, and a session's end would otherwise lose what it had finished."""
     to.mkdir(parents=True, exist_ok=True)
+    if start is not None:
+        es.record_start(to, start)
     for f in sorted((work / "es_ledger").glob("iter_*.json")):
         shutil.copy2(f, to / f.name)
     # a sitting stopped between an iteration's step and the next one's start still holds the finished iteration's
@@ -201,7 +209,7 @@ def export_ledger(work: Path, to: Path) -> Path:
 
 
 @contextlib.contextmanager
-def campaign_ledger(work: Path, rl):
+def campaign_ledger(work: Path, rl, start: str | None = None):
     """`rl.es_ledger_from=<folder>` names a campaign's ledger kept outside `outputs/` (in the repository): the run
     is seeded from it (`seed_from_ledger`) and keeps it current. Yields the Trainer's `after_save`: the ledger and
     history exported after every iteration's checkpoint, and once more when the sitting is interrupted, with the
@@ -213,7 +221,7 @@ def campaign_ledger(work: Path, rl):
         return
 
     def keep(done: int | None = None) -> None:
-        export_ledger(work, Path(folder))
+        export_ledger(work, Path(folder), start)
     try:
         yield keep
     except KeyboardInterrupt:

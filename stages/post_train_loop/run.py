@@ -43,6 +43,7 @@ from worldenv_core.imagination.env import WHOLE_DEPTH, context_depth
 from worldenv_core.manifest import StageRun
 from worldenv_core.models.checkpoint import load_checkpoint, read_config
 from worldenv_core.models.laplace import EXPLORATION
+from worldenv_core.rl import es
 from worldenv_core.rl.critic import ChunkValue
 from worldenv_core.rl.filtered_bc import SuccessBuffer
 from worldenv_core.rl.loop import OPTIMIZERS, check_success_range, make_optimizer
@@ -246,9 +247,11 @@ def run(cfg: DictConfig) -> dict:
         provenance = {"policy": policy_path, "worldsim": worldsim_path, "reflector": reflector_path}
         value = (ChunkValue(-(-int(rl.horizon) // contract.chunk), rl.critic_hidden, rl.critic_lr, rl.critic_steps,
                             rl.critic_minibatch, rl.gae_lambda, rl.critic_replay) if rl.advantages == "gae" else None)
+        start_weights = None
         if rl.policy_update == "es" and rl.get("es_ledger_from"):  # a campaign's ledger, on an empty work dir
+            start_weights = es.weights_digest(policy)  # what its steps are made on, named in the folder and checked there
             seed_from_ledger(work, rl.es_ledger_from, policy, {"ppo": optimizer}, read_config(policy_path)["model"],
-                             loop_meta(pmeta, provenance, src, key.get("contexts_from")), rl)
+                             loop_meta(pmeta, provenance, src, key.get("contexts_from")), rl, start_weights)
         trainer = Trainer(work, policy, {"ppo": optimizer}, model_config=read_config(policy_path)["model"],
                           meta=loop_meta(pmeta, provenance, src, key.get("contexts_from")), log_every=1, checkpoint_every=1, desc="post_train_loop", progress=cfg.progress,
                           postfix=("mean_reward", "reflector_success_rate", "approx_kl"),
@@ -266,7 +269,7 @@ def run(cfg: DictConfig) -> dict:
         phase = (es_phase(policy, collect, src.n_contexts, rl, cfg.seed, work / "es_ledger", guard,
                           len(contract_task_ids(contract)), context_tasks(cfg, contract, src)) if rl.policy_update == "es" else
                  rl_phase(policy, optimizer, collect, src.n_contexts, rl, cfg.seed, guard, buffer, value))
-        with campaign_ledger(work, rl) as keep_ledger:
+        with campaign_ledger(work, rl, start_weights) as keep_ledger:
             trainer.fit([phase], evaluate=evaluate, evaluate_every=cfg.eval.every, deadline=deadline,
                         after_save=keep_ledger)
         for journal in (work / "rollout_journal").glob("*"):  # every iteration it kept is checkpointed now

@@ -48,3 +48,13 @@ def test_a_bad_request_is_one_line_before_any_work(tmp_path, capsys, args, messa
     with pytest.raises(SystemExit):
         main([x for kv in base.items() for x in kv])
     assert message in capsys.readouterr().err and not (tmp_path / "o").exists()
+
+
+def test_a_ledger_made_on_other_starting_weights_is_refused(tmp_path, capsys):
+    """The folder names the weights its steps were made on (as a campaign's export writes it): another starting
+    policy (a retrained SFT on a fresh machine) would silently become another policy, so it is one line instead."""
+    kept_run(tmp_path)
+    es.record_start(tmp_path / "ledger", "0123456789abcdef")
+    with pytest.raises(SystemExit):
+        main(["--policy", str(tmp_path / "start"), "--ledger", str(tmp_path / "ledger"), "--out", str(tmp_path / "o")])
+    assert "made on starting weights 0123456789abcdef" in capsys.readouterr().err and not (tmp_path / "o").exists()

@@ -171,6 +171,45 @@ def write_ledger_entry(folder, iteration: int, contexts: list[int], seeds: list[
     write_text_atomic(Path(folder) / f"iter_{int(iteration):04d}.json", json.dumps(entry))
 
 
+START_FILE = "start.json"  # in a campaign's ledger folder: the weights its steps were made on
+
+
+def weights_digest(policy: torch.nn.Module) -> str:
+    """sha256 (16 hex digits) over a policy's weights and buffers, by name: what a ledger's steps were made on."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for name, t in policy.state_dict().items():
+        h.update(name.encode())
+        h.update(t.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+def record_start(folder, digest: str) -> None:
+    """Name the starting weights in a ledger folder, once (its first export)."""
+    import json
+    from pathlib import Path
+
+    from worldenv_core.files import write_text_atomic
+
+    path = Path(folder) / START_FILE
+    if not path.exists():
+        write_text_atomic(path, json.dumps({"weights": digest}))
+
+
+def check_start(folder, digest: str) -> None:
+    """A ledger's steps replay onto the weights it started from; on others they would silently make another
+    policy (a retrained SFT on a fresh machine, a wrong `policy_from`). ValueError naming both digests; a folder
+    from before the record (no start.json) is taken as it is."""
+    import json
+    from pathlib import Path
+
+    path = Path(folder) / START_FILE
+    if path.exists() and (want := json.loads(path.read_text())["weights"]) != digest:
+        raise ValueError(f"its steps were made on starting weights {want}, and this starting policy's are {digest}: "
+                         "replayed on it they would make another policy (start a new ledger for it)")
+
+
 def read_ledger(folder) -> list[dict]:
     """A ledger's entries in iteration order; a gap (an iteration missing) is an error."""
     import json

@@ -504,6 +504,11 @@ def test_evolution_strategies_in_weight_space_on_real_and_imagined_rollouts(trai
     with pytest.raises(ConfigError, match="was made with rl.es_sigma=0.05"):
         post_train_loop(cfg("post_train_loop", exp, *es_args, "rl.iterations=3", "rl.es_sigma=0.1",
                             f"rl.es_ledger_from={kept_ledger}"))
+    # the folder names the weights its steps were made on; on another starting policy they would make another policy
+    assert json.loads((kept_ledger / "start.json").read_text())["weights"] == es.weights_digest(sft)
+    (kept_ledger / "start.json").write_text(json.dumps({"weights": "0123456789abcdef"}))  # a retrained SFT's ledger
+    with pytest.raises(ConfigError, match="made on starting weights 0123456789abcdef"):
+        post_train_loop(cfg("post_train_loop", exp, *es_args, "rl.iterations=3", f"rl.es_ledger_from={kept_ledger}"))
     for override, match in (("rl.es_sigma=0", r"rl.es_sigma must be > 0"), ("rl.es_top=3", "rl.es_top must be"),
                             ("rl.es_discount=1.5", r"rl.es_discount must be in \(0, 1\]"),
                             ("rl.es_parameters=all", "rl.es_parameters must be one of"),

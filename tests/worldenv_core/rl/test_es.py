@@ -135,6 +135,24 @@ def test_the_ledger_rebuilds_the_runs_weights_from_the_starting_policy(tmp_path)
         es.read_ledger(tmp_path)
 
 
+def test_a_ledger_names_its_starting_weights_and_refuses_others(tmp_path):
+    """The digest covers every weight and buffer; a folder that names other starting weights is refused (its steps
+    would make another policy), one that names none (before the record) is taken as it is."""
+    torch.manual_seed(0)
+    start = Tiny()
+    digest = es.weights_digest(start)
+    assert digest == es.weights_digest(copy.deepcopy(start)) and len(digest) == 16
+    es.check_start(tmp_path, "0" * 16)  # no start.json: nothing to check
+    es.record_start(tmp_path, digest)
+    es.record_start(tmp_path, "f" * 16)  # once: the first export names it
+    es.check_start(tmp_path, digest)
+    other = copy.deepcopy(start)
+    with torch.no_grad():
+        other.trunk.bias[0] += 1e-6
+    with pytest.raises(ValueError, match=f"made on starting weights {digest}"):
+        es.check_start(tmp_path, es.weights_digest(other))
+
+
 def test_half_agreement_is_high_where_directions_matter_and_near_zero_where_they_do_not():
     """Simulated ledgers: pairs whose members truly differ agree between the even and the odd starts; pairs
     whose outcomes are coin flips do not (pooled over many iterations)."""
