@@ -118,7 +118,8 @@ eval-release: setup
 # The perturbed-suite table for the released policies: each released sft / post_trained of each suite on the
 # perturbed suites the benchmark registers for it (LIBERO-PRO: <suite>_swap, _lan, _object, _task), oracle
 # termination, the source suite's step limit, the first PRO_INIT init states per task (evaluations resume and
-# reuse finished jobs); then outputs/suites-pro/suites_pro.md beside each suite's own evaluation (make eval-release).
+# reuse finished jobs); then results/suites-pro/suites_pro.md (and .json) beside each suite's own evaluation (make
+# eval-release), kept in the repository as results/suites.md is; keep the evaluations too (analysis.keep).
 # make suites-pro PRO_SUITES=libero_spatial PRO_INIT=10
 PRO_SUITES ?= $(SUITES)
 PRO_PERTURBATIONS ?= swap lan object task
@@ -130,7 +131,7 @@ suites-pro: setup
 	    $(PY) -m stages.evaluate +task=$$suite experiment_dir=outputs/release-$$suite policy_from=checkpoints/$$suite/$$policy \
 	      policy_label=$$policy eval_suite=$${suite}_$$p termination=oracle init_states=$(PRO_INIT) || exit 1; \
 	  else echo "checkpoints/$$suite/$$policy: not released"; fi; done; done; done
-	$(PY) -m stages.suites --perturbed outputs/suites-pro $(foreach t,$(PRO_SUITES),$(t)=outputs/release-$(t))
+	$(PY) -m stages.suites --perturbed results/suites-pro $(foreach t,$(PRO_SUITES),$(t)=outputs/release-$(t))
 
 # The research variants (checkpoints/README.md, "Research variants"): out of the tree, each kept for one
 # figure; extracted here at their paths from the commit that last held them (needs the full history).

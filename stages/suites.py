@@ -22,7 +22,7 @@ The perturbed-suite table (LIBERO-PRO's perturbations the benchmark registers fo
 (`evaluate eval_suite=...`, the source suite's step limit), paired by episode, beside its own suite;
 `make suites-pro` runs the evaluations and writes `<out>/suites_pro.{md,json}`.
 
-    python -m stages.suites --perturbed outputs/suites-pro libero_spatial=outputs/release-libero_spatial
+    python -m stages.suites --perturbed results/suites-pro libero_spatial=outputs/release-libero_spatial
 """
 
 from __future__ import annotations
