@@ -49,7 +49,7 @@ def test_limit_threads_caps_torch_and_libraries_loaded_later():
 def test_a_stop_whose_interrupt_a_library_swallowed_still_ends_the_jobs():
     """LIBERO builds its scenes inside bare `except:` blocks, so a SIGTERM's interrupt raised there is lost (a
     collection went on for minutes): the stop is recorded too, and run_jobs ends before the next job."""
-    ran = []
+    ran, swallowed = [], []
 
     def job(i):
         ran.append(i)
@@ -58,18 +58,17 @@ def test_a_stop_whose_interrupt_a_library_swallowed_still_ends_the_jobs():
                 os.kill(os.getpid(), signal.SIGTERM)
                 time.sleep(5)  # the handler raises here, inside the try
             except:  # noqa: E722 - what LIBERO's scene code does
-                pass
+                swallowed.append(i)
         return i
 
     before = signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)
     try:
         terminate_as_interrupt()
-        t0 = time.perf_counter()
         with pytest.raises(Interrupted, match="after 2 of 4 jobs") as stopped:
             list(run_jobs(job, range(4), workers=1, progress=False))
-        assert time.perf_counter() - t0 < 4  # the sleep was cut short: the interrupt was raised, then swallowed
     finally:
         signal.signal(signal.SIGTERM, before[0])
         signal.signal(signal.SIGINT, before[1])
         request_stop(None)
+    assert swallowed == [1], "the interrupt was not raised inside the job, so nothing was swallowed"
     assert ran == [0, 1] and stopped.value.signum == signal.SIGTERM
