@@ -1,0 +1,193 @@
+"""How a policy's recorded rollouts fail, read off the gripper's opening alone (no image is decoded).
+
+Each episode is one of: a success; an **empty grasp** (every grasp the fingers made closed on nothing, the
+object was never held); a **lost object** (something was held at least once, and the task was not done: dropped,
+or carried and not placed); **no grasp** (the fingers never stayed closed). A grasp is a run of at least
+`min_steps` frames with the opening under `grasp_below` (fully open reads about 1); it held something when its
+settled opening (the median of its second half) stays at or above `empty_below` (LIBERO's black bowls hold the
+Panda's fingers at about 0.13; closed on nothing they settle under 0.03).
+
+Why it matters to the imagined route: after an empty grasp the policy carries nothing to the target as if it
+held the object, so from then on its real rollout fails while a world model that reads the arm's pose rather
+than the object's can imagine the object carried. `--depth lo hi` also says how many failed episodes had
+already missed (their first empty grasp over) before the keyframe window of `rl.context_depth` / `--depth` of
+`analysis.imagined_ledger` (fractions of the episode). `--keyframes` reads kept `imagined_ledger --episodes`
+runs and puts each keyframe context's real and imagined success beside the gripper's phase at that frame
+(before a grasp, holding, closed on nothing, after an empty grasp, after a held one): where imagination is
+faithful and where it invents the object.
+
+    python -m analysis.failure_modes --episodes "data/libero_spatial/policy-*/task*/policy_*.mcap" \\
+        [--depth 0.35 0.7] [--json modes.json]
+    python -m analysis.failure_modes --keyframes results/rl_recipes/imagined_keyframes_<run>.json ...
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+from collections import Counter, defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from worldenv_core.cli import user_errors
+from worldenv_core.files import write_text_atomic
+
+KINDS = ("success", "empty grasp", "lost object", "no grasp")
+PHASES = ("before a grasp", "holding", "closed on nothing", "after an empty grasp", "after a held grasp")
+
+
+def grasps(opening: np.ndarray, grasp_below: float = 0.3, min_steps: int = 8) -> list[tuple[int, int]]:
+    """[(first, end)) frame ranges where the fingers stayed closed (opening < grasp_below) >= min_steps frames."""
+    closed = np.concatenate([[False], np.asarray(opening) < grasp_below, [False]])
+    edges = np.flatnonzero(np.diff(closed.astype(np.int8)))
+    return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2]) if b - a >= min_steps]
+
+
+def classify(opening: np.ndarray, success: bool, grasp_below: float = 0.3, empty_below: float = 0.05,
+             min_steps: int = 8) -> tuple[str, int | None]:
+    """-> (kind, the frame where the first empty grasp ended, or None)."""
+    runs = grasps(opening, grasp_below, min_steps)
+    held = [float(np.median(opening[a + (b - a) // 2:b])) >= empty_below for a, b in runs]
+    first_empty = next((b for (a, b), h in zip(runs, held) if not h), None)
+    if success:
+        return "success", first_empty
+    if not runs:
+        return "no grasp", None
+    return ("lost object" if any(held) else "empty grasp"), first_empty
+
+
+def phase_at(opening: np.ndarray, k: int, grasp_below: float = 0.3, empty_below: float = 0.05,
+             min_steps: int = 8) -> str:
+    """The gripper's phase at frame k (one of PHASES). Inside a grasp the opening at k says it: at or above
+    empty_below something is between the fingers (still closing counts as holding once the grasp is held)."""
+    opening = np.asarray(opening)
+    phase = "before a grasp"
+    for a, b in grasps(opening, grasp_below, min_steps):
+        if a > k:
+            break
+        held = float(np.median(opening[a + (b - a) // 2:b])) >= empty_below
+        if k < b:
+            return "holding" if held and opening[k] >= empty_below else "closed on nothing"
+        phase = "after a held grasp" if held else "after an empty grasp"
+    return phase
+
+
+def keyframe_phases(run: dict, **thresholds) -> list[dict]:
+    """A kept `imagined_ledger --episodes` run -> per keyframe context: episode, frame, the gripper's phase,
+    the members' real and imagined success there."""
+    from worldenv_core.data.mcap_io.read import read_episode
+
+    rows = []
+    for part in run["iterations"].values():
+        if not part.get("keyframes"):
+            raise ValueError("this run has no keyframes: give an `analysis.imagined_ledger --episodes` json")
+        for key, real, imagined in zip(part["keyframes"], part["real_by_context"], part["imagined_by_context"]):
+            path, k = key.rsplit("@", 1)
+            ep = read_episode(path, cameras=[])
+            rows.append({"episode": path, "frame": int(k), "episode_success": bool(ep.meta.success),
+                         "phase": phase_at(ep.proprio[:, 6], int(k), **thresholds), "real": real,
+                         "imagined": imagined})
+    return rows
+
+
+def phase_table(rows: list[dict]) -> str:
+    """Markdown: per phase, contexts, mean real and imagined success, contexts imagined a success (>= half the
+    members) that fail for real (< half), and the reverse."""
+    head = ["phase", "contexts", "real", "imagined", "invented (imagined, not real)", "missed (real, not imagined)"]
+    lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
+    for phase in PHASES:
+        rs = [r for r in rows if r["phase"] == phase]
+        if not rs:
+            continue
+        invented = sum(r["imagined"] >= 0.5 > r["real"] for r in rs)
+        missed = sum(r["real"] >= 0.5 > r["imagined"] for r in rs)
+        lines.append(f"| {phase} | {len(rs)} | {np.mean([r['real'] for r in rs]):.2f} | "
+                     f"{np.mean([r['imagined'] for r in rs]):.2f} | {invented} | {missed} |")
+    return "\n".join(lines)
+
+
+def failure_modes(paths: list[Path], depth: tuple[float, float] | None = None, **thresholds) -> dict:
+    """Counts of each kind overall, by noise scale and by task; with `depth`, how many failures had their first
+    empty grasp over before the window's start / end (fractions of each episode's length)."""
+    from worldenv_core.data.mcap_io.read import read_episode
+
+    if not paths:
+        raise FileNotFoundError("no episode matched --episodes")
+    total, by_noise, by_task = Counter(), defaultdict(Counter), defaultdict(Counter)
+    missed_by = Counter()
+    first_empty_at = []
+    for path in paths:
+        ep = read_episode(path, cameras=[])
+        kind, first_empty = classify(ep.proprio[:, 6], bool(ep.meta.success), **thresholds)
+        noise = str(ep.meta.extra.get("noise_scale", "-")) if isinstance(ep.meta.extra, dict) else "-"
+        for c in (total, by_noise[noise], by_task[ep.meta.task_id]):
+            c[kind] += 1
+        if kind != "success" and first_empty is not None:
+            frac = first_empty / max(ep.length, 1)
+            first_empty_at.append(frac)
+            if depth is not None:
+                missed_by["window start"] += frac <= depth[0]
+                missed_by["window end"] += frac <= depth[1]
+    failures = sum(total.values()) - total["success"]
+    out = {"episodes": len(paths), "counts": dict(total), "by_noise_scale": {k: dict(v) for k, v in sorted(by_noise.items())},
+           "by_task": {k: dict(v) for k, v in sorted(by_task.items())}, "failures": failures,
+           "first_empty_grasp_ends": {q: float(np.quantile(first_empty_at, p)) for q, p in
+                                      (("q25", 0.25), ("median", 0.5), ("q75", 0.75))} if first_empty_at else None}
+    if depth is not None:
+        out["depth"] = list(depth)
+        out["failures_missed_before"] = {k: missed_by[k] / failures if failures else float("nan")
+                                         for k in ("window start", "window end")}
+    return out
+
+
+def table(modes: dict) -> str:
+    """Markdown: one row per noise scale and the total, the share of each kind."""
+    head = ["noise scale", "episodes", *KINDS]
+    lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
+    rows = [*modes["by_noise_scale"].items(), ("all", modes["counts"])]
+    for name, counts in rows:
+        n = sum(counts.values())
+        lines.append("| " + " | ".join([name, str(n), *(f"{counts.get(k, 0) / n:.0%}" for k in KINDS)]) + " |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    source = p.add_mutually_exclusive_group(required=True)
+    source.add_argument("--episodes", nargs="+", help="recorded episodes (globs)")
+    source.add_argument("--keyframes", nargs="+", type=Path, help="kept `imagined_ledger --episodes` runs (json)")
+    p.add_argument("--depth", type=float, nargs=2, help="a keyframe window (fractions of each episode)")
+    p.add_argument("--grasp-below", type=float, default=0.3, help="an opening under this is a closed gripper")
+    p.add_argument("--empty-below", type=float, default=0.05, help="a settled grasp under this held nothing")
+    p.add_argument("--min-steps", type=int, default=8, help="frames a closure lasts to count as a grasp")
+    p.add_argument("--json", type=Path, help="also write the counts here")
+    args = p.parse_args(argv)
+    thresholds = {"grasp_below": args.grasp_below, "empty_below": args.empty_below, "min_steps": args.min_steps}
+    if args.keyframes:
+        runs = {}
+        for path in args.keyframes:
+            run = json.loads(path.read_text())
+            runs[str(path)] = {"worldsim": run.get("worldsim"), "contexts": keyframe_phases(run, **thresholds)}
+            print(f"{path} (world model {run.get('worldsim')}):\n{phase_table(runs[str(path)]['contexts'])}\n")
+        if args.json:
+            write_text_atomic(args.json, json.dumps(runs, indent=1))
+        return runs
+    if args.depth and not 0 <= args.depth[0] <= args.depth[1] <= 1:
+        raise ValueError(f"--depth must be 0 <= lo <= hi <= 1, got {args.depth}")
+    paths = sorted(Path(p) for pattern in args.episodes for p in glob.glob(pattern))
+    modes = failure_modes(paths, tuple(args.depth) if args.depth else None, **thresholds)
+    print(table(modes))
+    if modes.get("failures_missed_before"):
+        m = modes["failures_missed_before"]
+        print(f"failures whose first empty grasp was over by the window's start / end: "
+              f"{m['window start']:.0%} / {m['window end']:.0%}")
+    if args.json:
+        write_text_atomic(args.json, json.dumps({"episodes": args.episodes, **modes}, indent=1))
+    return modes
+
+
+if __name__ == "__main__":
+    with user_errors():
+        main()

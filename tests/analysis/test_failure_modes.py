@@ -1,0 +1,82 @@
+"""Failure modes read off the gripper's opening: grasps, their outcome, the phase at a keyframe."""
+import json
+
+import numpy as np
+import pytest
+
+from analysis.failure_modes import classify, failure_modes, grasps, main, phase_at
+
+
+def trace(*segments):
+    """An opening trace from (value, frames) segments."""
+    return np.concatenate([np.full(n, v, dtype=np.float32) for v, n in segments])
+
+
+OPEN, BOWL, NOTHING = 0.98, 0.13, 0.02
+EMPTY_THEN_HELD = trace((OPEN, 20), (NOTHING, 12), (OPEN, 10), (BOWL, 30), (OPEN, 10))
+
+
+def test_grasps_are_closures_that_last():
+    assert grasps(EMPTY_THEN_HELD) == [(20, 32), (42, 72)]
+    assert grasps(trace((OPEN, 5), (NOTHING, 3), (OPEN, 5))) == []  # a blink of the fingers is no grasp
+    assert grasps(trace((BOWL, 10))) == [(0, 10)]  # closed from the first frame to the last
+
+
+def test_each_failure_is_named_by_what_its_grasps_held():
+    assert classify(EMPTY_THEN_HELD, success=True) == ("success", 32)
+    assert classify(EMPTY_THEN_HELD, success=False) == ("lost object", 32)
+    assert classify(trace((OPEN, 20), (NOTHING, 30), (OPEN, 20)), success=False) == ("empty grasp", 50)
+    assert classify(trace((OPEN, 50)), success=False) == ("no grasp", None)
+    # a wider empty threshold reads the bowl's rim as nothing
+    assert classify(EMPTY_THEN_HELD, success=False, empty_below=0.2) == ("empty grasp", 32)
+
+
+def test_the_phase_at_a_keyframe():
+    assert [phase_at(EMPTY_THEN_HELD, k) for k in (5, 25, 35, 60, 80)] == [
+        "before a grasp", "closed on nothing", "after an empty grasp", "holding", "after a held grasp"]
+
+
+def _episode(rng, opening, success, task, noise):
+    from tests.conftest import synthetic_episode
+
+    ep = synthetic_episode(rng, length=len(opening) - 1)
+    ep.proprio[:, 6] = opening
+    ep.meta.success, ep.meta.task_id, ep.meta.extra = success, task, {"noise_scale": noise}
+    return ep
+
+
+def test_counts_by_noise_and_task_and_the_keyframe_window(tmp_path):
+    from worldenv_core.data.mcap_io import write_episode
+
+    rng = np.random.default_rng(0)
+    empty = trace((OPEN, 20), (NOTHING, 30), (OPEN, 50))  # its first empty grasp ends at frame 50 of 99 steps
+    cases = [(EMPTY_THEN_HELD, True, 0, "1.0"), (empty, False, 0, "1.0"), (empty, False, 1, "2.5"),
+             (EMPTY_THEN_HELD, False, 1, "2.5")]
+    for i, (opening, success, task, noise) in enumerate(cases):
+        write_episode(tmp_path / f"ep{i}.mcap", _episode(rng, opening, success, task, noise))
+    paths = sorted(tmp_path.glob("ep*.mcap"))
+    modes = failure_modes(paths, depth=(0.4, 0.7))
+    assert modes["counts"] == {"success": 1, "empty grasp": 2, "lost object": 1} and modes["failures"] == 3
+    assert modes["by_noise_scale"]["2.5"] == {"empty grasp": 1, "lost object": 1}
+    assert modes["by_task"][0] == {"success": 1, "empty grasp": 1}
+    # the two empty ones missed at 51 % (inside the window), the lost object at 32 / 81 = 40 % (at its start)
+    assert modes["failures_missed_before"] == {"window start": pytest.approx(1 / 3), "window end": 1.0}
+
+    run = {"worldsim": "w", "iterations": {"keyframes": {
+        "keyframes": [f"{paths[1]}@40", f"{paths[3]}@60"], "real_by_context": [0.0, 0.75],
+        "imagined_by_context": [1.0, 0.25]}}}
+    (tmp_path / "run.json").write_text(json.dumps(run))
+    out = main(["--keyframes", str(tmp_path / "run.json"), "--json", str(tmp_path / "phases.json")])
+    rows = out[str(tmp_path / "run.json")]["contexts"]
+    assert [r["phase"] for r in rows] == ["closed on nothing", "holding"] and rows[0]["imagined"] == 1.0
+    assert json.loads((tmp_path / "phases.json").read_text()) == out
+
+
+def test_bad_input_is_named(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no episode matched"):
+        main(["--episodes", str(tmp_path / "none*.mcap")])
+    with pytest.raises(ValueError, match="--depth must be"):
+        main(["--episodes", "x", "--depth", "0.7", "0.3"])
+    (tmp_path / "ledger.json").write_text(json.dumps({"iterations": {"1": {"real_by_context": []}}}))
+    with pytest.raises(ValueError, match="no keyframes"):
+        main(["--keyframes", str(tmp_path / "ledger.json")])
