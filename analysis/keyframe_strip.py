@@ -1,7 +1,7 @@
 """What a world model imagines from a recorded keyframe, as a picture: per keyframe, the recorded episode's own
 frames from there (what really happened) above the policy's imagined rollout in each world model given, a frame
 every `--every` steps, each imagined row labelled with where the reward model's verdict fired (the imagined
-rollout stops there). No physics: the recorded row is the episode as it was collected (its own, noisier actions).
+rollout stops there). `--sampler-noise 1 --sampling-steps 4` shows the sampled generator instead of the mean. No physics: the recorded row is the episode as it was collected (its own, noisier actions).
 
     python -m analysis.keyframe_strip +task=libero_spatial --policy checkpoints/libero_spatial/sft \\
         --episodes "data/libero_spatial/policy-*/task03/policy_0051.mcap" --depth 0.35 0.7 \\
@@ -81,6 +81,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--reflector", help="reflector checkpoint (default: checkpoints/<suite>/reflector)")
     ap.add_argument("--horizon", type=int, default=64, help="imagined steps")
     ap.add_argument("--every", type=int, default=16, help="steps between the frames shown")
+    ap.add_argument("--sampling-steps", type=int, help="the flow sampler's steps (default: each model's own)")
+    ap.add_argument("--sampler-noise", type=float, help="the flow sampler's temperature in [0, 1] (default: its own)")
     ap.add_argument("--out", type=Path, required=True, help="the picture (png / jpg)")
     ap.add_argument("overrides", nargs="*", help="Hydra overrides naming the task (+task=...)")
     args = ap.parse_args(argv)
@@ -113,8 +115,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
         encoder = InstructionEncoder()
         policy, _ = load_checkpoint(args.policy, "policy", contract, device="cpu")
         policy.eval()
-        envs = [build_imagined_env(w, reflector, reflector_eta(reflector, None), encoder, args.horizon, None, "cpu",
-                                   contract) for w in args.worldsim]
+        envs = [build_imagined_env(w, reflector, reflector_eta(reflector, None), encoder, args.horizon,
+                                   args.sampling_steps, "cpu", contract, args.sampler_noise) for w in args.worldsim]
         camera = envs[0][1]
         steps = list(range(0, args.horizon + 1, args.every))
         rows, found = [], []
