@@ -212,6 +212,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--worldsim", help="world-simulator checkpoint (default: checkpoints/<suite>/worldsim)")
     ap.add_argument("--reflector", help="reflector checkpoint (default: checkpoints/<suite>/reflector)")
     ap.add_argument("--eta", type=float, default=None, help="the verdict's threshold (default: the reflector's)")
+    ap.add_argument("--robot-layer", action="store_true",
+                    help="with --episodes: the robot drawn by the real renderer over imagined frames (robot_layer.py)")
     ap.add_argument("--json", type=Path, help="write the per-iteration and pooled figures here")
     ap.add_argument("overrides", nargs="*", help="Hydra overrides naming the task (+task=...)")
     args = ap.parse_args(argv)
@@ -235,12 +237,16 @@ def main(argv: list[str] | None = None) -> dict:
             if not (Path(path) / "model.safetensors").exists():
                 raise ConfigError(f"{what} {path}: no model.safetensors there (a checkpoint folder is needed)")
         encoder = InstructionEncoder()
+        if args.robot_layer and args.ledger:
+            raise ConfigError("--robot-layer draws the robot in recorded scenes: it needs --episodes' keyframes")
         env, camera = build_imagined_env(worldsim, reflector, reflector_eta(reflector, args.eta), encoder,
-                                         args.horizon or contract.max_steps, None, "cpu", contract)
+                                         args.horizon or contract.max_steps, None, "cpu", contract,
+                                         robot_layer=args.robot_layer)
         rows = (ledger_rows(args, entries, contract, env, camera, encoder) if args.ledger else
                 keyframe_rows(args, contract, env, camera, encoder))
         result = {"ledger": str(args.ledger) if args.ledger else None, "episodes": args.episodes, "policy": args.policy,
-                  "worldsim": worldsim, "reflector": reflector, "eta": env.eta, "horizon": env.horizon,
+                  "worldsim": worldsim, "robot_layer": args.robot_layer, "reflector": reflector, "eta": env.eta,
+                  "horizon": env.horizon,
                   "iterations": rows, "pooled": pooled(list(rows.values()))}
         print(line("pooled", result["pooled"]))
         if args.json:

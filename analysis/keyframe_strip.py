@@ -83,6 +83,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--every", type=int, default=16, help="steps between the frames shown")
     ap.add_argument("--sampling-steps", type=int, help="the flow sampler's steps (default: each model's own)")
     ap.add_argument("--sampler-noise", type=float, help="the flow sampler's temperature in [0, 1] (default: its own)")
+    ap.add_argument("--robot-layer", action="store_true",
+                    help="also each model with the robot drawn by the real renderer (`imagination.robot_layer`)")
     ap.add_argument("--out", type=Path, required=True, help="the picture (png / jpg)")
     ap.add_argument("overrides", nargs="*", help="Hydra overrides naming the task (+task=...)")
     args = ap.parse_args(argv)
@@ -115,8 +117,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
         encoder = InstructionEncoder()
         policy, _ = load_checkpoint(args.policy, "policy", contract, device="cpu")
         policy.eval()
+        variants = [(w, False) for w in args.worldsim] + [(w, True) for w in args.worldsim if args.robot_layer]
         envs = [build_imagined_env(w, reflector, reflector_eta(reflector, None), encoder, args.horizon,
-                                   args.sampling_steps, "cpu", contract, args.sampler_noise) for w in args.worldsim]
+                                   args.sampling_steps, "cpu", contract, args.sampler_noise, robot_layer=robot)
+                for w, robot in variants]
         camera = envs[0][1]
         steps = list(range(0, args.horizon + 1, args.every))
         rows, found = [], []
@@ -126,12 +130,14 @@ def main(argv: list[str] | None = None) -> list[dict]:
             recorded = read_episode(path, cameras=[camera]).images[camera]
             rows.append((f"{path.parent.name}/{path.stem}@{k}\nrecorded", [recorded[min(k + s, len(recorded) - 1)]
                                                                            for s in steps]))
-            for w, (env, _) in zip(args.worldsim, envs):
+            for (w, robot), (env, _) in zip(variants, envs):
                 frames, fired = imagined_frames(policy, env, contexts[0], encoder)
                 verdict = f"success at +{fired}" if fired is not None else "no success"
-                rows.append((f"{'/'.join(Path(w).parts[-2:])}\n{verdict}", pick(frames, steps, contract.chunk)))
-                found.append({"episode": str(path), "frame": k, "worldsim": w, "verdict_step": fired})
-                print(f"{path}@{k} in {w}: {verdict}", flush=True)
+                name = "/".join(Path(w).parts[-2:]) + (" + robot layer" if robot else "")
+                rows.append((f"{name}\n{verdict}", pick(frames, steps, contract.chunk)))
+                found.append({"episode": str(path), "frame": k, "worldsim": w, "robot_layer": robot,
+                              "verdict_step": fired})
+                print(f"{path}@{k} in {name}: {verdict}", flush=True)
         draw(rows, steps, args.out)
         print(f"wrote {args.out}")
         return found

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from worldenv_core.imagination.robot_layer import RobotLayer, Scene, composite
 from worldenv_core.imagination.simulator import ImaginedSimulator, checkpoint_arms
 from worldenv_core.kinematics.camera import PinholeCamera
 from worldenv_core.rl.termination import check_eta
@@ -32,13 +33,16 @@ class Context:
     # them, with the recorded prefix 9 (docs/notebook/verdict_fidelity.md). The world model never sees it.
     history: torch.Tensor | None = None
     joint_pos: torch.Tensor | None = None  # (7,): the arm's joint angles at o_1 (a world model that draws the arm needs them)
+    scene: "Scene | None" = None  # the real scene at o_1 (a recorded episode's seed and MuJoCo state): the robot layer's
 
     @classmethod
     def from_episode(cls, ep, camera: str, t: int = 0, history_every: int = 0) -> "Context":
         """Frame `t` of a recorded episode (LOOP starts from t = 0); with `history_every` (the env's chunk, the
         spacing of the frames the reward model is shown) the recorded frames before it at that spacing."""
         images = ep.images[camera]
-        return cls(task_id=ep.meta.task_id, instruction=ep.meta.instruction,
+        scene = (Scene(ep.meta.task_id, int(ep.meta.seed), ep.sim_state[t].copy())
+                 if getattr(ep, "sim_state", None) is not None and ep.sim_state.shape[1] else None)
+        return cls(task_id=ep.meta.task_id, instruction=ep.meta.instruction, scene=scene,
                    frame=torch.from_numpy(images[t]).permute(2, 0, 1).contiguous(),
                    proprio=torch.from_numpy(ep.proprio[t]), history=history_frames(images, t, history_every),
                    joint_pos=None if getattr(ep, "joint_pos", None) is None else torch.from_numpy(ep.joint_pos[t]))
@@ -100,13 +104,15 @@ class StepResult:
 
 class ImaginedEnv:
     def __init__(self, sim: ImaginedSimulator, cameras: dict[int, PinholeCamera], reflector, encoder, eta: float,
-                 horizon: int, arms: dict | None = None):
+                 horizon: int, arms: dict | None = None, robot: RobotLayer | None = None):
         """sim: the world simulator + kinematics; cameras: task id -> the world model's camera in that
         task's scene; reflector: a reward model (the trained `Reflector`, or the VLM yes/no one)
         watching the same camera; encoder: instruction
         strings -> embeddings (the frozen MiniLM); arms: task id -> the arm of that scene (`SerialArm`), for a
-        world model whose maps draw it."""
+        world model whose maps draw it; robot: the real renderer's robot over each chunk's last frame
+        (`robot_layer.py`; every context then needs its `scene` and `joint_pos`)."""
         self.sim, self.cameras, self.reflector, self.encoder = sim, cameras, reflector.eval(), encoder
+        self.robot = robot
         self.arms = arms or {}
         self.eta, self.horizon, self.chunk = check_eta(eta), int(horizon), sim.model.chunk
         self.scorer = None  # the reward model's incremental scorer of the current rollouts
@@ -127,6 +133,12 @@ class ImaginedEnv:
             joints = torch.stack([torch.as_tensor(c.joint_pos, dtype=torch.float64) for c in contexts]).to(device)
         self.sim.reset(frames[:, None], proprio, cameras=[self.cameras[c.task_id] for c in contexts], joints=joints,
                        arms=[self.arms[c.task_id] for c in contexts] if self.sim.model.arm_map else None)
+        if self.robot is not None:
+            if any(c.scene is None or c.joint_pos is None for c in contexts):
+                raise ValueError("the robot layer draws the arm in each context's real scene: every context needs its "
+                                 "scene and joint angles (contexts from recorded episodes have them)")
+            self.robot.reset([c.scene for c in contexts],
+                             torch.stack([torch.as_tensor(c.joint_pos, dtype=torch.float64) for c in contexts]))
         self.scorer = self.reflector.scorer([c.instruction for c in contexts], self.encoder)
         if any(c.history is not None for c in contexts) and hasattr(self.scorer, "add_history"):
             self.scorer.add_history([None if c.history is None else c.history.to(device) for c in contexts])
@@ -146,6 +158,10 @@ class ImaginedEnv:
         prev = self.state
         out = self.sim.step(actions, decode=self.decode, generator=generator)
         frames = out.frames[:, -1]
+        if self.robot is not None:  # the arm redrawn where its joints are, and the next chunk starts from it
+            frames = composite(frames, *self.robot.advance(out.proprio))
+            self.sim.overwrite_last(frames)
+            out.frames[:, -1] = frames
         self.scorer.add(frames)
         score = self.scorer.score()
         t = prev.t + self.chunk
@@ -176,10 +192,11 @@ def check_horizon(horizon: int, label_delay: int, chunk: int) -> None:
 
 def build_imagined_env(worldsim_path: str, reflector_path: str, eta: float, encoder, horizon: int,
                        sampling_steps: int | None, device, contract=None,
-                       sampler_noise: float | None = None) -> tuple[ImaginedEnv, str]:
+                       sampler_noise: float | None = None, robot_layer: bool = False) -> tuple[ImaginedEnv, str]:
     """The imagined environment LOOP trains in: the world simulator with each task's camera and
     the reflector as reward. Returns it and the camera it imagines. `sampling_steps` and
-    `sampler_noise` override the world model's flow sampler (None: its own settings)."""
+    `sampler_noise` override the world model's flow sampler (None: its own settings); `robot_layer`
+    draws the robot with the real renderer over each chunk's last frame (needs the contract's suite)."""
     from worldenv_core.models.checkpoint import CheckpointError, load_checkpoint, read_config
 
     meta = read_config(worldsim_path)["meta"]
@@ -191,4 +208,9 @@ def build_imagined_env(worldsim_path: str, reflector_path: str, eta: float, enco
         raise CheckpointError(f"the reflector watches {rmeta['camera']!r} but the world simulator imagines "
                               f"{meta['camera']!r}")
     check_horizon(horizon, int(rmeta.get("label_delay", 0)), sim.model.chunk)
-    return ImaginedEnv(sim, cameras, reflector, encoder, eta, horizon, arms), meta["camera"]
+    robot = None
+    if robot_layer:
+        if contract is None:
+            raise ValueError("the robot layer renders the task's scenes: build_imagined_env needs the task contract")
+        robot = RobotLayer(contract.suite, meta["camera"], sim.model.image_size)
+    return ImaginedEnv(sim, cameras, reflector, encoder, eta, horizon, arms, robot), meta["camera"]

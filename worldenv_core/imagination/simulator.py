@@ -149,6 +149,14 @@ class ImaginedSimulator:
         return ChunkResult(proprio=states.float(), latents=z, action_maps=maps, frames=frames,
                            joints=None if joints is None else joints.float())
 
+    @torch.no_grad()
+    def overwrite_last(self, frames: torch.Tensor) -> None:
+        """frames (B, 3, H, W) uint8: the newest frame as it should be read from now on (the robot layer's
+        composite): its latent replaces the model's own, so the next chunk starts from it."""
+        if self.latents is None or frames.shape[0] != self.latents.shape[0]:
+            raise ValueError(f"overwrite_last needs one frame per rollout after a step, got {tuple(frames.shape)}")
+        self.latents[:, -1] = self.model.encode(frames.to(self.device)[:, None])[:, 0]
+
     def _maps(self, states: torch.Tensor, joints: torch.Tensor | None = None) -> torch.Tensor:
         """(B, n, 7) states (and (B, n, 7) joints, for a model that draws the arm) -> (B, n, 3, S, S)
         action maps, each rollout through its own camera."""
