@@ -46,6 +46,9 @@ class RobotLayer:
 
         self.suite, self.camera, self.image_size = suite, camera, int(image_size)
         self._envs: dict[int, tuple[object, np.ndarray, SerialArm]] = {}  # task -> (env, robot geom ids, arm)
+        # (task, seed) -> the fixtures' poses a reset by that seed placed (model.body_pos, body_quat): a hard reset
+        # costs 3-4 s, so each seed's is done once and its placement put back for every draw
+        self._fixtures: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
         self.scenes: list[Scene] = []
         self.joints: torch.Tensor | None = None  # (B, 7)
         atexit.register(self.close)  # GL contexts freed while EGL is still up (at teardown they raise)
@@ -68,7 +71,6 @@ class RobotLayer:
             raise ValueError(f"{len(scenes)} scenes for {len(joints)} rollouts' joint angles")
         self.scenes = list(scenes)
         self.joints = joints.detach().to("cpu", torch.float64)
-        self._seeded: dict[int, int] = {}  # task -> the seed its env's fixtures were last placed by
 
     def advance(self, states: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
         """The chunk's imagined end-effector states (B, K, 7) -> the joints tracked onto them, and the robot
@@ -85,11 +87,13 @@ class RobotLayer:
 
     def _draw(self, scene: Scene, joints: np.ndarray, opening: float) -> tuple[np.ndarray, np.ndarray]:
         env, robot, _ = self._env(scene.task_id, scene.seed)
-        if self._seeded.get(scene.task_id) != scene.seed:  # the fixtures (body_pos) follow the seed, not the state
-            env.reset(seed=scene.seed)
-            self._seeded[scene.task_id] = scene.seed
-        env.set_sim_state(scene.sim_state)
+        key = (scene.task_id, scene.seed)
+        if key not in self._fixtures:  # the fixtures' placement follows the seed, not the MuJoCo state
+            env.reset(seed=scene.seed)  # a hard reset: a new MjSim (the same model, so the same geom ids)
+            self._fixtures[key] = (env.sim.model.body_pos.copy(), env.sim.model.body_quat.copy())
         sim, bot = env.sim, env.raw.robots[0]
+        sim.model.body_pos[:], sim.model.body_quat[:] = self._fixtures[key]
+        env.set_sim_state(scene.sim_state)
         sim.data.qpos[bot._ref_joint_pos_indexes] = joints
         sim.data.qpos[bot._ref_gripper_joint_pos_indexes] = [opening * FINGER_GAP_MAX / 2, -opening * FINGER_GAP_MAX / 2]
         rgb = env.render([self.camera])[self.camera]  # forwards the new pose first
