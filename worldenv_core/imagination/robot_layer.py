@@ -42,8 +42,6 @@ class RobotLayer:
     imagined frames. One LIBERO env per task, built on first use."""
 
     def __init__(self, suite: str, camera: str, image_size: int):
-        import atexit
-
         self.suite, self.camera, self.image_size = suite, camera, int(image_size)
         self._envs: dict[int, tuple[object, np.ndarray, SerialArm]] = {}  # task -> (env, robot geom ids, arm)
         # (task, seed) -> the fixtures' poses a reset by that seed placed (model.body_pos, body_quat): a hard reset
@@ -51,13 +49,16 @@ class RobotLayer:
         self._fixtures: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
         self.scenes: list[Scene] = []
         self.joints: torch.Tensor | None = None  # (B, 7)
-        atexit.register(self.close)  # GL contexts freed while EGL is still up (at teardown they raise)
 
     def _env(self, task_id: int, seed: int):
         from worldenv_core.envs.libero_env import LiberoEnv
 
         if task_id not in self._envs:
             env = LiberoEnv(self.suite, task_id, cameras=[self.camera], image_size=self.image_size)
+            if not self._envs:  # after robosuite's own exit hook (registered with the first GL context): ours runs
+                import atexit  # first, so the contexts are freed while EGL is still up (after, each one raises)
+
+                atexit.register(self.close)
             frame = env.reset(seed=seed)
             model = env.sim.model
             robot = np.array([g for g in range(model.ngeom)
@@ -104,9 +105,12 @@ class RobotLayer:
         return rgb, (seg[..., 0] == int(mujoco.mjtObj.mjOBJ_GEOM)) & np.isin(seg[..., 1], robot)
 
     def close(self) -> None:
+        import gc
+
         for env, _, _ in self._envs.values():
             env.close()
         self._envs.clear()
+        gc.collect()  # the render contexts of the sims hard resets replaced, freed while EGL is still up
 
 
 def composite(frames: torch.Tensor, rgb: np.ndarray, mask: np.ndarray) -> torch.Tensor:
