@@ -19,6 +19,10 @@ faithful and where it invents the object.
     python -m analysis.failure_modes --episodes "data/libero_spatial/policy-*/task*/policy_*.mcap" \\
         [--depth 0.35 0.7] [--json modes.json]
     python -m analysis.failure_modes --keyframes results/rl_recipes/imagined_keyframes_<run>.json ...
+
+`--reflector R` (with `--episodes` and `+task=<suite>`) also scores every episode's real frames at the chunk
+boundaries, as a rollout is scored, and counts per kind how often R crosses its eta: a success model's false
+stops by the way the episode failed (the reward's blind spots, no imagination involved).
 """
 
 from __future__ import annotations
@@ -108,19 +112,35 @@ def phase_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def failure_modes(paths: list[Path], depth: tuple[float, float] | None = None, **thresholds) -> dict:
+def reflector_stops(ep, judge) -> bool:
+    """Does the success model (`judge`: (model, encoder, eta, camera, chunk)) call the episode's real frames a
+    success at any chunk boundary?"""
+    import torch
+
+    from worldenv_core.rl.termination import check_steps, first_stop
+
+    model, encoder, eta, camera, chunk = judge
+    video = torch.from_numpy(ep.images[camera]).permute(0, 3, 1, 2)
+    steps = check_steps(len(video), chunk)
+    return first_stop(steps, model.score_prefixes(video, ep.meta.instruction, steps, encoder).numpy(), eta) is not None
+
+
+def failure_modes(paths: list[Path], depth: tuple[float, float] | None = None, judge=None, **thresholds) -> dict:
     """Counts of each kind overall, by noise scale and by task; with `depth`, how many failures had their first
-    empty grasp over before the window's start / end (fractions of each episode's length)."""
+    empty grasp over before the window's start / end (fractions of each episode's length); with `judge`
+    (`reflector_stops`), per kind how many episodes the success model called a success."""
     from worldenv_core.data.mcap_io.read import read_episode
 
     if not paths:
         raise FileNotFoundError("no episode matched --episodes")
     total, by_noise, by_task = Counter(), defaultdict(Counter), defaultdict(Counter)
-    missed_by = Counter()
+    missed_by, stopped = Counter(), Counter()
     first_empty_at = []
     for path in paths:
-        ep = read_episode(path, cameras=[])
+        ep = read_episode(path, cameras=[judge[3]] if judge else [], load_sim_state=False)
         kind, first_empty = classify(ep.proprio[:, 6], bool(ep.meta.success), **thresholds)
+        if judge is not None:
+            stopped[kind] += reflector_stops(ep, judge)
         noise = str(ep.meta.extra.get("noise_scale", "-")) if isinstance(ep.meta.extra, dict) else "-"
         for c in (total, by_noise[noise], by_task[ep.meta.task_id]):
             c[kind] += 1
@@ -135,6 +155,8 @@ def failure_modes(paths: list[Path], depth: tuple[float, float] | None = None, *
            "by_task": {k: dict(v) for k, v in sorted(by_task.items())}, "failures": failures,
            "first_empty_grasp_ends": {q: float(np.quantile(first_empty_at, p)) for q, p in
                                       (("q25", 0.25), ("median", 0.5), ("q75", 0.75))} if first_empty_at else None}
+    if judge is not None:
+        out["reflector_says_success"] = {k: stopped[k] / total[k] for k in KINDS if total[k]}
     if depth is not None:
         out["depth"] = list(depth)
         out["failures_missed_before"] = {k: missed_by[k] / failures if failures else float("nan")
@@ -143,14 +165,31 @@ def failure_modes(paths: list[Path], depth: tuple[float, float] | None = None, *
 
 
 def table(modes: dict) -> str:
-    """Markdown: one row per noise scale and the total, the share of each kind."""
+    """Markdown: one row per noise scale and the total, the share of each kind (and, where the success model
+    judged them, the share of each kind it called a success)."""
     head = ["noise scale", "episodes", *KINDS]
     lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
     rows = [*modes["by_noise_scale"].items(), ("all", modes["counts"])]
     for name, counts in rows:
         n = sum(counts.values())
         lines.append("| " + " | ".join([name, str(n), *(f"{counts.get(k, 0) / n:.0%}" for k in KINDS)]) + " |")
+    said = modes.get("reflector_says_success")
+    if said:
+        lines.append("| the success model says success | | " + " | ".join(
+            f"{said[k]:.0%}" if k in said else "-" for k in KINDS) + " |")
     return "\n".join(lines)
+
+
+def load_judge(path: str, eta: float | None, overrides: list[str]):
+    """(model, encoder, eta, camera, chunk) for `reflector_stops`: a reflector checkpoint of the task named."""
+    from worldenv_core.models.checkpoint import load_checkpoint
+    from worldenv_core.models.text import InstructionEncoder
+    from worldenv_core.rl.termination import reflector_eta
+    from worldenv_core.stage import compose_config, task_contract
+
+    contract = task_contract(compose_config("post_train_loop", ["scale=small", *overrides]))
+    model, meta = load_checkpoint(path, "reflector", contract, device="cpu")
+    return model.eval(), InstructionEncoder(), reflector_eta(path, eta), meta["camera"], contract.chunk
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -162,7 +201,10 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--grasp-below", type=float, default=0.3, help="an opening under this is a closed gripper")
     p.add_argument("--empty-below", type=float, default=0.05, help="a settled grasp under this held nothing")
     p.add_argument("--min-steps", type=int, default=8, help="frames a closure lasts to count as a grasp")
+    p.add_argument("--reflector", help="with --episodes: a success model checkpoint judging the real frames")
+    p.add_argument("--eta", type=float, help="with --reflector: its threshold (default: the reflector's own)")
     p.add_argument("--json", type=Path, help="also write the counts here")
+    p.add_argument("overrides", nargs="*", help="Hydra overrides naming the task (+task=...), for --reflector")
     args = p.parse_args(argv)
     thresholds = {"grasp_below": args.grasp_below, "empty_below": args.empty_below, "min_steps": args.min_steps}
     if args.keyframes:
@@ -177,7 +219,10 @@ def main(argv: list[str] | None = None) -> dict:
     if args.depth and not 0 <= args.depth[0] <= args.depth[1] <= 1:
         raise ValueError(f"--depth must be 0 <= lo <= hi <= 1, got {args.depth}")
     paths = sorted(Path(p) for pattern in args.episodes for p in glob.glob(pattern))
-    modes = failure_modes(paths, tuple(args.depth) if args.depth else None, **thresholds)
+    judge = None
+    if args.reflector:
+        judge = load_judge(args.reflector, args.eta, args.overrides)
+    modes = failure_modes(paths, tuple(args.depth) if args.depth else None, judge, **thresholds)
     print(table(modes))
     if modes.get("failures_missed_before"):
         m = modes["failures_missed_before"]

@@ -3,8 +3,9 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
-from analysis.failure_modes import classify, failure_modes, grasps, main, phase_at
+from analysis.failure_modes import classify, failure_modes, grasps, main, phase_at, table
 
 
 def trace(*segments):
@@ -80,3 +81,23 @@ def test_bad_input_is_named(tmp_path):
     (tmp_path / "ledger.json").write_text(json.dumps({"iterations": {"1": {"real_by_context": []}}}))
     with pytest.raises(ValueError, match="no keyframes"):
         main(["--keyframes", str(tmp_path / "ledger.json")])
+
+
+def test_the_success_models_verdicts_are_counted_per_kind(tmp_path):
+    """A real (untrained, tiny) reflector judging the real frames: at eta 0 it stops every episode, at 1 none."""
+    from hydra.utils import instantiate
+
+    from tests.worldenv_core.imagination.conftest import REFLECTOR
+    from worldenv_core.data.mcap_io import write_episode
+
+    rng = np.random.default_rng(1)
+    for i, (opening, success) in enumerate([(EMPTY_THEN_HELD, True), (EMPTY_THEN_HELD, False)]):
+        write_episode(tmp_path / f"ep{i}.mcap", _episode(rng, opening, success, 0, "1.0"))
+    model = instantiate(REFLECTOR).eval()
+    encoder = lambda texts: torch.stack([torch.full((16,), float(len(t))) for t in texts])  # noqa: E731
+    paths = sorted(tmp_path.glob("ep*.mcap"))
+    always = failure_modes(paths, judge=(model, encoder, 0.0, "agentview", 8))
+    never = failure_modes(paths, judge=(model, encoder, 1.0, "agentview", 8))
+    assert always["reflector_says_success"] == {"success": 1.0, "lost object": 1.0}
+    assert never["reflector_says_success"] == {"success": 0.0, "lost object": 0.0}
+    assert "| the success model says success | | 100% | - | 100% | - |" in table(always)
