@@ -100,7 +100,7 @@ def es_phase(policy, collect, n_contexts: int | None, rl, seed: int, ledger: Pat
         if ledger is not None:
             es.write_ledger_entry(ledger, it + 1, picks, seeds, out["success"], out["steps"], returns, rl,
                                   rolled_back=bool(stats.get("rolled_back")), no_step=bool(stats.get("no_step")),
-                                  score=score)
+                                  score=score, focus_task=focus[0][0] if focus and len(focus[0]) == 1 else None)
         stats.update({f"rollout_{k}_seconds": v for k, v in out["timing"].items()})
         success = out["success"].float()
         return {"mean_reward": float(success.mean()), "reflector_success_rate": float(success.mean()),
@@ -172,7 +172,7 @@ def seed_from_ledger(work: Path, ledger_from: str | Path, policy, optimizers: di
             es.write_ledger_entry(work / "es_ledger", e["iteration"], e["contexts"], e["seeds"],
                                   torch.tensor(e["success"]), torch.tensor(e["steps"]), torch.tensor(e["returns"]), rl,
                                   e.get("rolled_back", False), e.get("no_step", False),
-                                  torch.tensor(e["score"]) if "score" in e else None)
+                                  torch.tensor(e["score"]) if "score" in e else None, e.get("focus_task"))
         history = json.loads((folder / "history.json").read_text()) if (folder / "history.json").exists() else []
         history = [h for h in history if h.get("step", 0) <= done]
         evaluated = sorted({int(h["step"]) for h in history if "validation_success" in h or "real_success" in h})

@@ -150,12 +150,15 @@ def mixed_contexts(values: torch.Tensor, apart: float = 0.0) -> int:
 
 def write_ledger_entry(folder, iteration: int, contexts: list[int], seeds: list[int], success: torch.Tensor,
                        steps: torch.Tensor, returns: torch.Tensor, rl, rolled_back: bool = False,
-                       no_step: bool = False, score: torch.Tensor | None = None) -> None:
+                       no_step: bool = False, score: torch.Tensor | None = None,
+                       focus_task: int | None = None) -> None:
     """One iteration's record (whole or absent): its contexts, directions, every member's outcome from every
     context (contexts x members) and the settings of its step, enough to redo the step (`replay_ledger`);
     `rolled_back`: the step was made and undone (the paired-replay guard); `no_step`: none was made (too few
     contexts told the members apart, `rl.es_min_mixed`); a replay skips both. `score`: the reflector's R where
-    each rollout ended (`rl.es_return=score`), kept beside the verdicts."""
+    each rollout ended (`rl.es_return=score`), kept beside the verdicts. `focus_task`: the task the iteration
+    trained under `rl.task_focus=1` (iteration k of the ledger counts from 1, the focus from 0: iteration 1 is task 0;
+    without it, one session read iterations 1-2 as tasks 1-2)."""
     import json
     from pathlib import Path
 
@@ -165,6 +168,7 @@ def write_ledger_entry(folder, iteration: int, contexts: list[int], seeds: list[
              "success": success.int().tolist(), "steps": steps.int().tolist(), "returns": returns.tolist(),
              **({"score": [[round(float(v), 4) for v in row] for row in score.tolist()]} if score is not None else {}),
              **{k: rl.get(k, LEDGER_DEFAULTS.get(k)) for k in LEDGER_SETTINGS},
+             **({"focus_task": int(focus_task)} if focus_task is not None else {}),
              **({"rolled_back": True} if rolled_back else {}),
              **({"no_step": True} if no_step else {})}
     Path(folder).mkdir(parents=True, exist_ok=True)

@@ -123,9 +123,10 @@ def test_the_ledger_rebuilds_the_runs_weights_from_the_starting_policy(tmp_path)
         steps = torch.randint(1, 40, (5, 4), generator=g)
         returns = es.member_returns(success, steps)
         es.ars_update(run, seeds, returns, rl.es_step, rl.es_top, rl.es_parameters)
-        es.write_ledger_entry(tmp_path, it, [it, it + 1], seeds, success, steps, returns, rl)
+        es.write_ledger_entry(tmp_path, it, [it, it + 1], seeds, success, steps, returns, rl, focus_task=it - 1)
     entries = es.read_ledger(tmp_path)
     assert [e["iteration"] for e in entries] == [1, 2, 3] and len(entries[0]["success"]) == 5
+    assert [e["focus_task"] for e in entries] == [0, 1, 2]  # the task each trained, beside its 1-based number
     rebuilt = es.replay_ledger(copy.deepcopy(start), entries)
     assert all(p.equal(q) for p, q in zip(rebuilt.parameters(), run.parameters()))
     assert not all(p.equal(q) for p, q in zip(es.replay_ledger(copy.deepcopy(start), entries, 2).parameters(),
