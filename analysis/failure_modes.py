@@ -28,7 +28,6 @@ stops by the way the episode failed (the reward's blind spots, no imagination in
 from __future__ import annotations
 
 import argparse
-import glob
 import json
 from collections import Counter, defaultdict
 from pathlib import Path
@@ -36,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from worldenv_core.cli import user_errors
+from worldenv_core.data.mcap_io.read import glob_episode_files
 from worldenv_core.files import write_text_atomic
 
 KINDS = ("success", "empty grasp", "lost object", "no grasp")
@@ -218,7 +218,7 @@ def main(argv: list[str] | None = None) -> dict:
         return runs
     if args.depth and not 0 <= args.depth[0] <= args.depth[1] <= 1:
         raise ValueError(f"--depth must be 0 <= lo <= hi <= 1, got {args.depth}")
-    paths = sorted(Path(p) for pattern in args.episodes for p in glob.glob(pattern))
+    paths = glob_episode_files(args.episodes)
     judge = None
     if args.reflector:
         judge = load_judge(args.reflector, args.eta, args.overrides)

@@ -95,6 +95,13 @@ def pooled(rows: list[dict]) -> dict:
 
 
 
+def require_checkpoints(named: list[tuple[str, str]]) -> None:
+    """(option, folder) pairs: each a checkpoint folder, or a one-line error naming the option, before any load."""
+    for what, path in named:
+        if not (Path(path) / "model.safetensors").exists():
+            raise ConfigError(f"{what} {path}: no model.safetensors there (a checkpoint folder is needed)")
+
+
 def placement_contexts(contract, numbers: list[int], camera: str) -> list:
     """The fresh placements a real-route iteration met (`training.placements` numbering) as imagined contexts: each
     placement's first frame rendered by the real simulator, with its proprio and instruction."""
@@ -168,14 +175,13 @@ def keyframe_rows(args, contract, env, camera, encoder) -> dict:
     """--episodes: keyframes of recorded episodes (`rl.mid_episode_frames` at `rl.context_depth`) as the contexts,
     `--pairs` antithetic members around the policy drawn here, each member's real outcome from each keyframe
     collected (real episodes, counted) and its imagined one, both bounded by the imagined horizon."""
-    import glob
-
     from stages.post_train_loop.training import contexts_from_episodes
+    from worldenv_core.data.mcap_io.read import glob_episode_files
     from worldenv_core.models.checkpoint import load_checkpoint
     from worldenv_core.rl import es
     from worldenv_core.rl.real_rollouts import collect_member_outcomes
 
-    paths = sorted(Path(p) for pattern in args.episodes for p in glob.glob(pattern))
+    paths = glob_episode_files(args.episodes)
     if not paths:
         raise ConfigError(f"--episodes {args.episodes}: no recorded episode matches")
     contexts, starts = contexts_from_episodes(paths, camera, args.frames, tuple(args.depth), contract.chunk)
@@ -233,9 +239,7 @@ def main(argv: list[str] | None = None) -> dict:
                 raise ConfigError(f"--depth: {e}") from None
         worldsim = args.worldsim or f"checkpoints/{contract.suite}/worldsim"
         reflector = args.reflector or f"checkpoints/{contract.suite}/reflector"
-        for what, path in (("--worldsim", worldsim), ("--reflector", reflector), ("--policy", args.policy)):
-            if not (Path(path) / "model.safetensors").exists():
-                raise ConfigError(f"{what} {path}: no model.safetensors there (a checkpoint folder is needed)")
+        require_checkpoints([("--worldsim", worldsim), ("--reflector", reflector), ("--policy", args.policy)])
         encoder = InstructionEncoder()
         if args.robot_layer and args.ledger:
             raise ConfigError("--robot-layer draws the robot in recorded scenes: it needs --episodes' keyframes")

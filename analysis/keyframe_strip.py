@@ -89,10 +89,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("overrides", nargs="*", help="Hydra overrides naming the task (+task=...)")
     args = ap.parse_args(argv)
     with user_errors():
-        import glob
-
+        from analysis.imagined_ledger import require_checkpoints
         from stages.post_train_loop.training import contexts_from_episodes
-        from worldenv_core.data.mcap_io.read import read_episode
+        from worldenv_core.data.mcap_io.read import glob_episode_files, read_episode
         from worldenv_core.imagination.env import build_imagined_env, check_depth
         from worldenv_core.models.checkpoint import load_checkpoint
         from worldenv_core.models.text import InstructionEncoder
@@ -105,15 +104,13 @@ def main(argv: list[str] | None = None) -> list[dict]:
             raise ConfigError(f"--depth: {e}") from None
         if args.every <= 0 or args.horizon <= 0:
             raise ConfigError(f"--every and --horizon must be positive, got {args.every} and {args.horizon}")
-        paths = sorted(Path(p) for pattern in args.episodes for p in glob.glob(pattern))
+        paths = glob_episode_files(args.episodes)
         if not paths:
             raise ConfigError(f"--episodes {args.episodes}: no recorded episode matches")
         contract = task_contract(compose_config("post_train_loop", ["scale=small", *args.overrides]))
         reflector = args.reflector or f"checkpoints/{contract.suite}/reflector"
-        for what, path in (("--reflector", reflector), ("--policy", args.policy),
-                           *(("--worldsim", w) for w in args.worldsim)):
-            if not (Path(path) / "model.safetensors").exists():
-                raise ConfigError(f"{what} {path}: no model.safetensors there (a checkpoint folder is needed)")
+        require_checkpoints([("--reflector", reflector), ("--policy", args.policy),
+                             *(("--worldsim", w) for w in args.worldsim)])
         encoder = InstructionEncoder()
         policy, _ = load_checkpoint(args.policy, "policy", contract, device="cpu")
         policy.eval()

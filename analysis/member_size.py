@@ -18,13 +18,13 @@ from __future__ import annotations
 
 import argparse
 import copy
-import glob
 import json
 from pathlib import Path
 
 import torch
 
 from worldenv_core.cli import user_errors
+from worldenv_core.data.mcap_io.read import glob_episode_files
 from worldenv_core.errors import ConfigError
 from worldenv_core.files import write_text_atomic
 
@@ -94,7 +94,7 @@ def main(argv: list[str] | None = None) -> dict:
         if args.frames:
             from analysis.policy_frames import policy_frames
 
-            paths = sorted(Path(p) for pattern in args.frames for p in glob.glob(pattern))
+            paths = glob_episode_files(args.frames)
             if not paths:
                 raise ConfigError(f"--frames {args.frames}: no recorded episode matches")
             frames = policy_frames(paths, policy.cameras, encoder, every=args.every)

@@ -40,8 +40,9 @@ class Context:
         """Frame `t` of a recorded episode (LOOP starts from t = 0); with `history_every` (the env's chunk, the
         spacing of the frames the reward model is shown) the recorded frames before it at that spacing."""
         images = ep.images[camera]
-        scene = (Scene(ep.meta.task_id, int(ep.meta.seed), ep.sim_state[t].copy())
-                 if getattr(ep, "sim_state", None) is not None and ep.sim_state.shape[1] else None)
+        sim_state = getattr(ep, "sim_state", None)  # an episode-like object may carry only what a context reads
+        scene = (Scene(ep.meta.task_id, int(ep.meta.seed), sim_state[t].copy())
+                 if sim_state is not None and sim_state.shape[1] else None)
         return cls(task_id=ep.meta.task_id, instruction=ep.meta.instruction, scene=scene,
                    frame=torch.from_numpy(images[t]).permute(2, 0, 1).contiguous(),
                    proprio=torch.from_numpy(ep.proprio[t]), history=history_frames(images, t, history_every),

@@ -61,6 +61,7 @@ class RobotLayer:
                 atexit.register(self.close)
             frame = env.reset(seed=seed)
             model = env.sim.model
+            self._fixtures[(task_id, seed)] = (model.body_pos.copy(), model.body_quat.copy())
             robot = np.array([g for g in range(model.ngeom)
                               if (model.body_id2name(model.geom_bodyid[g]) or "").startswith(ROBOT_BODIES)])
             self._envs[task_id] = (env, robot, SerialArm.from_env(env, frame))
@@ -87,6 +88,8 @@ class RobotLayer:
         return rgb, mask
 
     def _draw(self, scene: Scene, joints: np.ndarray, opening: float) -> tuple[np.ndarray, np.ndarray]:
+        import mujoco
+
         env, robot, _ = self._env(scene.task_id, scene.seed)
         key = (scene.task_id, scene.seed)
         if key not in self._fixtures:  # the fixtures' placement follows the seed, not the MuJoCo state
@@ -99,18 +102,13 @@ class RobotLayer:
         sim.data.qpos[bot._ref_gripper_joint_pos_indexes] = [opening * FINGER_GAP_MAX / 2, -opening * FINGER_GAP_MAX / 2]
         rgb = env.render([self.camera])[self.camera]  # forwards the new pose first
         seg = sim.render(width=self.image_size, height=self.image_size, camera_name=self.camera, segmentation=True)
-        import mujoco
-
         seg = seg[::-1]  # upright, as `render`
         return rgb, (seg[..., 0] == int(mujoco.mjtObj.mjOBJ_GEOM)) & np.isin(seg[..., 1], robot)
 
     def close(self) -> None:
-        import gc
-
         for env, _, _ in self._envs.values():
             env.close()
         self._envs.clear()
-        gc.collect()  # the render contexts of the sims hard resets replaced, freed while EGL is still up
 
 
 def composite(frames: torch.Tensor, rgb: np.ndarray, mask: np.ndarray) -> torch.Tensor:

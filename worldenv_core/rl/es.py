@@ -156,9 +156,9 @@ def write_ledger_entry(folder, iteration: int, contexts: list[int], seeds: list[
     context (contexts x members) and the settings of its step, enough to redo the step (`replay_ledger`);
     `rolled_back`: the step was made and undone (the paired-replay guard); `no_step`: none was made (too few
     contexts told the members apart, `rl.es_min_mixed`); a replay skips both. `score`: the reflector's R where
-    each rollout ended (`rl.es_return=score`), kept beside the verdicts. `focus_task`: the task the iteration
-    trained under `rl.task_focus=1` (iteration k of the ledger counts from 1, the focus from 0: iteration 1 is task 0;
-    without it, one session read iterations 1-2 as tasks 1-2)."""
+    each rollout ended (`rl.es_return=score`), kept beside the verdicts. `focus_task`: the position (in the
+    tasks trained on) of the one task the iteration trained under `rl.task_focus=1`, kept because the focus counts
+    from 0 and the ledger from 1 (iteration 1 is position 0), which is easy to misread."""
     import json
     from pathlib import Path
 

@@ -24,11 +24,13 @@ from .format import (
     JSON_SCHEMAS, REAL_PREFIX, REFLECTOR_SCHEMA, SCHEMA_VERSION, SUFFIX, CorruptEpisodeError, EpisodeInfo,
 )
 from .png import decode_png, encode_png
-from .read import iter_episodes, list_episode_files, read_episode, read_info, read_meta, read_reflector_scores
+from .read import (glob_episode_files, iter_episodes, list_episode_files, read_episode, read_info, read_meta,
+                   read_reflector_scores)
 from .write import write_episode, write_imagined_episode
 
 __all__ = [
     "JSON_SCHEMAS", "REAL_PREFIX", "REFLECTOR_SCHEMA", "SCHEMA_VERSION", "SUFFIX",
-    "CorruptEpisodeError", "EpisodeInfo", "decode_png", "encode_png", "iter_episodes", "list_episode_files",
+    "CorruptEpisodeError", "EpisodeInfo", "decode_png", "encode_png", "glob_episode_files",
+    "iter_episodes", "list_episode_files",
     "read_episode", "read_info", "read_meta", "read_reflector_scores", "write_episode", "write_imagined_episode",
 ]

@@ -162,6 +162,13 @@ def list_episode_files(paths_or_dir: str | os.PathLike | Iterable[str | os.PathL
     return [Path(p) for p in paths_or_dir]
 
 
+def glob_episode_files(patterns: Iterable[str]) -> list[Path]:
+    """The recorded episodes matching shell patterns (the analysis tools' `--episodes`), sorted."""
+    import glob
+
+    return sorted(Path(p) for pattern in patterns for p in glob.glob(pattern))
+
+
 def iter_episodes(paths_or_dir, on_error: str = "skip", **read_kwargs) -> Iterator[Episode]:
     """Yield the episodes of a directory or list of files. With on_error="skip", a corrupt file
     is logged (warning naming the file and the problem) and skipped; "raise" re-raises."""
