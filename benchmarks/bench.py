@@ -11,6 +11,9 @@ same CPU threads (`--threads`, default 1: torch threads, and the software render
 `--only policy`: one chunk's forward (batch 1, as a rollout asks) of each policy config named by
 `--policies` (default: the project's `small` and LeRobot's ACT, `lerobot_act`) at the task's image size,
 untrained (the cost does not depend on the weights), with their parameter counts.
+`--only robot_layer`: what the robot layer (`imagination.robot_layer`) adds to imagination, per rollout and
+chunk (tracking the joints onto a chunk's end-effector states and drawing the robot at the last one), beside
+a real chunk's physics and chunk-boundary render on the same thread.
 """
 
 from __future__ import annotations
@@ -148,6 +151,44 @@ def policy_costs(policies: list[str], suite: str, image_size: int, repeats: int)
     return out
 
 
+def robot_layer_cost(suite: str, task_id: int, image_size: int, camera: str, repeats: int, batch: int) -> dict:
+    """Milliseconds per rollout and chunk of the robot layer (median), against a real chunk of the same length."""
+    import torch
+
+    from worldenv_core.imagination.robot_layer import RobotLayer, Scene
+
+    chunk = 8
+    env = LiberoEnv(suite, task_id, cameras=[camera], image_size=image_size)
+    frame = env.reset(seed=0)
+    rng = np.random.default_rng(0)
+    scene, joints = Scene(task_id, 0, frame.sim_state.copy()), torch.as_tensor(frame.joint_pos)
+    states = []  # a real chunk's end-effector states: the layer tracks what the world model would imagine
+
+    def real_chunk():
+        for t in range(chunk):
+            states.append(env.step(np.r_[rng.uniform(-0.3, 0.3, 6), -1.0]).proprio)
+        env.render()  # what a chunked policy reads
+
+    real_chunk()  # warm-up
+    real_ms = statistics.median(_median_ms(real_chunk, 2) for _ in range(repeats))
+    env.close()
+    chunk_states = torch.as_tensor(np.stack(states[:chunk]))[None].expand(batch, -1, -1).contiguous()
+    layer = RobotLayer(suite, camera, image_size)
+    try:
+        layer.reset([scene] * batch, joints[None].expand(batch, -1))
+        layer.advance(chunk_states)  # builds its env and the seed's fixtures once, as the first chunk of a run
+
+        def advance():
+            layer.reset([scene] * batch, joints[None].expand(batch, -1))
+            layer.advance(chunk_states)
+
+        ms = statistics.median(_median_ms(advance, 2) for _ in range(repeats)) / batch
+    finally:
+        layer.close()
+    return {"chunk": chunk, "batch": batch, "robot_layer_ms_per_rollout_chunk": round(ms, 1),
+            "real_chunk_ms": round(real_ms, 1), "robot_layer_over_real_chunk": round(ms / real_ms, 2)}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--suite", default="libero_object")
@@ -157,7 +198,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--batch", type=int, default=8, help="imagined rollouts per world-model call")
     parser.add_argument("--worldsim", default=None, help="a train_worldsim checkpoint (default: untrained, same cost)")
-    parser.add_argument("--only", choices=["simulator", "worldsim", "policy"], default=None)
+    parser.add_argument("--only", choices=["simulator", "worldsim", "policy", "robot_layer"], default=None)
     parser.add_argument("--policies", nargs="+", default=["small", "lerobot_act"], help="policy configs (conf/policy)")
     parser.add_argument("--threads", type=int, default=1,
                         help="CPU threads for each side: the world model's torch threads and the simulator's "
@@ -172,9 +213,12 @@ def main() -> None:
     result = {}
     if args.only in (None, "policy"):
         result["policy"] = policy_costs(args.policies, args.suite, args.image_size, max(args.repeats, 10))
-    if args.only not in ("worldsim", "policy"):
+    if args.only not in ("worldsim", "policy", "robot_layer"):
         result["simulator"] = simulator_costs(args.suite, args.task_id, args.image_size, args.cameras, args.repeats)
-    if args.only not in ("simulator", "policy"):
+    if args.only in (None, "robot_layer"):
+        result["robot_layer"] = robot_layer_cost(args.suite, args.task_id, args.image_size, args.cameras[0],
+                                                 args.repeats, args.batch)
+    if args.only not in ("simulator", "policy", "robot_layer"):
         result["world_model"] = world_model_speed(args.suite, args.task_id, args.image_size, args.cameras[0],
                                                   args.repeats, args.batch, args.worldsim)
     print(json.dumps(result, indent=2))

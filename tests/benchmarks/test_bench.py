@@ -1,5 +1,9 @@
-"""`make bench --only policy`: each policy config's cost per chunk, built as train_policy builds it."""
-from benchmarks.bench import policy_costs
+"""`make bench --only policy`: each policy config's cost per chunk, built as train_policy builds it; `--only
+robot_layer`: the robot layer's cost per rollout and chunk beside a real chunk."""
+import pytest
+
+from benchmarks.bench import policy_costs, robot_layer_cost
+from tests.conftest import TINY_SUITE, TINY_TASK
 
 
 def test_policy_costs_time_each_configs_chunk_and_count_its_parameters():
@@ -8,3 +12,12 @@ def test_policy_costs_time_each_configs_chunk_and_count_its_parameters():
     for row in out.values():
         assert row["ms_per_chunk"] > 0 and row["chunk"] == 8 and row["parameters_m"] > 0.1
     assert out["lerobot_act"]["parameters_m"] > out["small"]["parameters_m"]  # ACT's ResNet-18 and transformer
+
+
+@pytest.mark.sim
+def test_robot_layer_cost_times_the_layer_per_rollout_beside_a_real_chunk():
+    out = robot_layer_cost(TINY_SUITE, TINY_TASK, 32, "agentview", repeats=1, batch=2)
+    assert out["chunk"] == 8 and out["batch"] == 2
+    assert out["robot_layer_ms_per_rollout_chunk"] > 0 and out["real_chunk_ms"] > 0
+    ratio = out["robot_layer_ms_per_rollout_chunk"] / out["real_chunk_ms"]
+    assert abs(out["robot_layer_over_real_chunk"] - ratio) < 0.01 + 0.01 * ratio
