@@ -12,7 +12,7 @@ export MUJOCO_GL ?= egl
 export HF_HUB_OFFLINE := 1
 export TOKENIZERS_PARALLELISM := false
 
-.PHONY: setup test test-fast faults smoke pipeline refit rl-real rl-figures suites suites-table suites-pro eval-release research-checkpoints fidelity bench cost-model expert-table tensorboard clean
+.PHONY: setup test test-fast faults smoke pipeline refit exploration rl-real rl-figures suites suites-table suites-pro eval-release research-checkpoints fidelity bench cost-model expert-table tensorboard clean
 
 setup: $(STAMP)
 
@@ -148,9 +148,22 @@ research-checkpoints:
 	  tar -x --transform 's|^checkpoints/libero_goal/sft|checkpoints/libero_goal/sft_first_recipe|' && \
 	  echo "checkpoints/libero_goal/sft_first_recipe (the first SFT recipe, the folder sft until it was replaced)"
 
+# The imagined route's data on a fresh machine (results/imagined_route.md): the expert demos, the released SFT
+# policy's exploration rollouts at three Laplace noise scales (EXPLORE_EPISODES per task: 100 is the 1,000-rollout
+# collection, about 4 hours on 2 cores), and 3 unseen rollouts per task collected apart (seed 1, data/unseen) for
+# the keyframe checks. Every collection resumes episode by episode: the same command goes on.
+EXPLORE_EPISODES ?= 100
+exploration: setup
+	$(PY) -m stages.collect $(STAGE_ARGS) source=expert post_success_steps=32 workers=2
+	$(PY) -m stages.collect $(STAGE_ARGS) source=policy policy_from=checkpoints/$(TASK)/sft \
+	  episodes_per_task=$(EXPLORE_EPISODES) 'noise_scale=[1.0,1.6,2.5]' post_success_steps=32 lerobot_export=false workers=2
+	$(PY) -m stages.collect +task=$(TASK) scale=$(SCALE) experiment_dir=$(EXP)-unseen data_dir=data/unseen seed=1 \
+	  source=policy policy_from=checkpoints/$(TASK)/sft episodes_per_task=3 'noise_scale=[1.0,1.6,2.5]' \
+	  post_success_steps=32 lerobot_export=false workers=2
+
 # LOOP with the true reward in the real simulator from the released SFT policy (the RL recipe's campaign,
 # results/rl_campaign.md): resumable, the same command continues from the last iteration.
-# make rl-real TASK=libero_spatial [RECIPE=es_many_pairs SEED=0 RL_ITERATIONS=20 EVAL_EVERY=4 RL_ARGS=...]
+# make rl-real TASK=libero_spatial [RECIPE=es_many_pairs SEED=0 RL_ITERATIONS=20 EVAL_EVERY=4 RL_POLICY=... RL_ARGS=...]
 # (the default: weight-space ES, 32 pairs on 4 starts of one task an iteration, the tasks in turn, 256 episodes each:
 # libero_spatial 57.8 -> 77.8 % after 20 iterations; RECIPE=es_by_task: 8 pairs on 16 starts, 70.6 %; with
 # RL_ARGS=rl.es_ledger_from=results/rl_recipes/<run>_ledger: kept current by the run, so a fresh machine goes on from it)
@@ -159,9 +172,10 @@ SEED ?= 0
 RL_ITERATIONS ?= 20
 EVAL_EVERY ?= 4
 RL_ARGS ?=
+RL_POLICY ?= checkpoints/$(TASK)/sft
 rl-real: setup
 	$(PY) -m stages.post_train_loop +task=$(TASK) scale=$(SCALE) experiment_dir=$(EXP) env=real rl=$(RECIPE) \
-	  policy_from=checkpoints/$(TASK)/sft rl.iterations=$(RL_ITERATIONS) eval.every=$(EVAL_EVERY) eval.init_states=0 \
+	  policy_from=$(RL_POLICY) rl.iterations=$(RL_ITERATIONS) eval.every=$(EVAL_EVERY) eval.init_states=0 \
 	  eval.validation=100 eval.workers=2 seed=$(SEED) $(RL_ARGS)
 
 # The real-route campaign's figures and tables from what the repository keeps (ledgers under results/rl_recipes/,
