@@ -12,7 +12,7 @@ export MUJOCO_GL ?= egl
 export HF_HUB_OFFLINE := 1
 export TOKENIZERS_PARALLELISM := false
 
-.PHONY: setup test test-fast faults smoke pipeline refit exploration rl-real rl-figures suites suites-table suites-pro eval-release research-checkpoints fidelity bench cost-model expert-table tensorboard clean
+.PHONY: setup test test-fast faults smoke pipeline refit exploration rl-real rl-figures suites suites-table suites-pro eval-release research-checkpoints act-checkpoint fidelity bench cost-model expert-table tensorboard clean
 
 setup: $(STAMP)
 
@@ -160,6 +160,14 @@ exploration: setup
 	$(PY) -m stages.collect +task=$(TASK) scale=$(SCALE) experiment_dir=$(EXP)-unseen data_dir=data/unseen seed=1 \
 	  source=policy policy_from=checkpoints/$(TASK)/sft episodes_per_task=3 'noise_scale=[1.0,1.6,2.5]' \
 	  post_success_steps=32 lerobot_export=false workers=2
+
+# LeRobot's ACT for libero_spatial (checkpoints/README.md): 31.6 MB, so kept in the history, not the tree; extracted
+# at its path (git-ignored) from the commit that holds it (a shallow clone needs `git fetch --unshallow` first).
+ACT_REV = a7298d5
+act-checkpoint:
+	@git cat-file -e $(ACT_REV)^{commit} 2>/dev/null || { echo "commit $(ACT_REV) is not in this clone: \
+	fetch the full history (git fetch --unshallow) first"; exit 1; }
+	@git archive $(ACT_REV) checkpoints/libero_spatial/act_sft | tar -x && echo "checkpoints/libero_spatial/act_sft"
 
 # LOOP with the true reward in the real simulator from the released SFT policy (the RL recipe's campaign,
 # results/rl_campaign.md): resumable, the same command continues from the last iteration.
