@@ -239,14 +239,22 @@ class LiberoEnv:
         self._env.set_state(np.asarray(flat_state, dtype=np.float64))
         self.sim.forward()
 
-    def render_states(self, states: np.ndarray, cameras=None) -> dict[str, np.ndarray]:
-        """Render a recorded sequence of MuJoCo states: camera -> (T, H, W, 3) uint8."""
+    def render_states(self, states: np.ndarray, cameras=None, known: dict | None = None) -> dict[str, np.ndarray]:
+        """Render a recorded sequence of MuJoCo states: camera -> (T, H, W, 3) uint8.
+
+        known: frame index -> camera -> image already rendered live at that state (a policy's chunk boundaries,
+        about one frame in eight); a live render equals the replayed one bit for bit, so those are not redrawn."""
         cams = list(cameras or self.cameras)
+        known = known or {}
         frames: dict[str, list] = {c: [] for c in cams}
-        for s in states:
-            self.set_sim_state(s)
-            for cam, img in self.render(cams).items():
-                frames[cam].append(img)
+        for t, s in enumerate(states):
+            have = known.get(t, {})
+            missing = [c for c in cams if c not in have]
+            if missing:
+                self.set_sim_state(s)
+                have = {**have, **self.render(missing)}
+            for cam in cams:
+                frames[cam].append(have[cam])
         return {c: np.stack(v) for c, v in frames.items()}
 
     # robosuite makes a GL context current only when it builds one, and frees one (at a hard reset, at

@@ -1,5 +1,6 @@
 """Record episodes in the real simulator: act without cameras, keep the MuJoCo state per step,
-and render only the episodes that are kept, by replaying their states (as robomimic does).
+and render only the episodes that are kept, by replaying their states (as robomimic does). A policy's
+chunk-boundary frames, rendered live for it to act on, are kept and not replayed (one render in eight saved).
 
 A failed expert attempt therefore costs physics only (~10 ms per step), never rendering.
 """
@@ -55,6 +56,8 @@ class Trajectory:
     actions: list[np.ndarray]
     step_extras: dict[str, list[np.ndarray]] = field(default_factory=dict)
     error: str | None = None  # set when the simulator failed mid-episode
+    # frame index -> camera -> image rendered live (a policy's chunk boundaries): kept, they need no replay
+    images: dict[int, dict[str, np.ndarray]] = field(default_factory=dict)
 
     @property
     def success(self) -> bool:
@@ -129,7 +132,7 @@ def to_episode(env: LiberoEnv, traj: Trajectory, **meta):
     from worldenv_core.data.episode import Episode, EpisodeMeta
 
     states = np.stack([f.sim_state for f in traj.frames])
-    images = env.render_states(states)
+    images = env.render_states(states, known=traj.images)
     meta.setdefault("cameras", list(env.cameras))
     return Episode(
         meta=EpisodeMeta(
@@ -177,9 +180,11 @@ def policy_episode(env: LiberoEnv, runner, init_state, seed: int, max_steps: int
             rendered["images"] = env.render(cameras)
         return rendered["images"]
 
+    live: dict[int, dict] = {}  # frame t -> its boundary images, which `to_episode` then need not render again
+
     def act(frame: Frame, t: int):
         if not queue:
-            images = boundary_images()
+            images = live[t] = boundary_images()
             rendered.clear()
             actions, mu, beta = runner.act_chunk(images, frame.proprio, env.instruction)
             queue.extend(zip(actions, mu, beta))
@@ -189,5 +194,7 @@ def policy_episode(env: LiberoEnv, runner, init_state, seed: int, max_steps: int
     def finished() -> bool:
         return stop_when is not None and not queue and bool(stop_when(boundary_images()))
 
-    return rollout(env, act, first, max_steps, stop_on_success=stop_on_success, finished=finished,
+    traj = rollout(env, act, first, max_steps, stop_on_success=stop_on_success, finished=finished,
                    post_success_steps=post_success_steps)
+    traj.images = live
+    return traj

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from worldenv_core.envs.recording import attempt_seed, rollout, to_episode
+from worldenv_core.envs.recording import attempt_seed, policy_episode, rollout, to_episode
 
 pytestmark = pytest.mark.sim
 
@@ -28,6 +28,39 @@ def test_rollout_logs_policy_extras_and_renders_only_when_kept(tiny_env):
     assert ep.images["agentview"].shape == (5, 64, 64, 3)
     assert ep.images["robot0_eye_in_hand"].shape == (5, 64, 64, 3)
     assert np.array_equal(ep.sim_state[0], first.sim_state)
+
+
+class ChunkRunner:
+    """A policy's interface (a chunk of 4 actions per boundary), remembering the images it was shown."""
+
+    cameras = ["agentview"]
+
+    def __init__(self):
+        self.seen = []
+
+    def act_chunk(self, images, proprio, instruction):
+        self.seen.append(images["agentview"].copy())
+        a = np.tile(np.r_[0.3, 0.1, 0, 0, 0, 0.2, -1.0], (4, 1)).astype(np.float32)
+        return a, a, np.zeros_like(a)
+
+
+def test_a_policy_episode_keeps_its_boundary_renders_and_the_episode_equals_a_full_replay(tiny_env, monkeypatch):
+    """The chunk-boundary frames the policy saw are kept, not rendered again: the recorded episode is pixel for
+    pixel the replay of every state, at about one render in four fewer here (chunk 4)."""
+    runner = ChunkRunner()
+    traj = policy_episode(tiny_env, runner, 0, seed=0, max_steps=10, stop_on_success=False)
+    assert sorted(traj.images) == [0, 4, 8] and len(traj.frames) == 11
+    assert all(np.array_equal(traj.images[t]["agentview"], seen) for t, seen in zip([0, 4, 8], runner.seen))
+    renders = []
+    real_render = tiny_env.render
+    monkeypatch.setattr(tiny_env, "render", lambda cams=None: renders.append(list(cams)) or real_render(cams))
+    ep = to_episode(tiny_env, traj, init_state_index=0, seed=0, source="policy")
+    # the wrist camera (not the policy's) is rendered at every frame, the agent view only off the boundaries
+    assert renders.count(["robot0_eye_in_hand"]) == 3 and len(renders) == 11
+    monkeypatch.undo()
+    replay = tiny_env.render_states(ep.sim_state)
+    for cam in replay:
+        assert np.array_equal(ep.images[cam], replay[cam])
 
 
 def test_attempt_seeds_are_distinct_and_stable():
