@@ -190,8 +190,11 @@ def test_an_interrupt_is_one_line_and_the_same_command_resumes(demo_experiment, 
     exp = tmp_path / "exp"
     shutil.copytree(demo_experiment, exp)
     args = ["stages.train_policy", "+task=tiny", "scale=tiny", *TINY_POLICY, f"experiment_dir={exp}"]
+    # A run started from a background job inherits SIGINT ignored (POSIX) and Python keeps it so: the run is given
+    # the default disposition a terminal's Ctrl-C meets, whoever launched the tests.
     proc = subprocess.Popen([sys.executable, "-m", *args], cwd=REPO, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.time() + 300
     while time.time() < deadline and proc.poll() is None and not list(exp.glob("train_policy/*/checkpoints/last")):
         time.sleep(0.05)
