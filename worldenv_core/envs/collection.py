@@ -236,5 +236,5 @@ def evaluate_policy_task(job: PolicyEvalJob) -> dict:
                          **({"reflector_scores": [round(x, 4) for x in scores]} if mode == "reflector" else {})})
         if i in job.video_ids and traj.frames:
             states = np.stack([f.sim_state for f in traj.frames])
-            videos[i] = env.render_states(states, [c.cameras[0]])[c.cameras[0]]
+            videos[i] = env.render_states(states, [c.cameras[0]], known=traj.images)[c.cameras[0]]
     return {"rows": rows, "videos": videos}
