@@ -14,6 +14,9 @@ untrained (the cost does not depend on the weights), with their parameter counts
 `--only robot_layer`: what the robot layer (`imagination.robot_layer`) adds to imagination, per rollout and
 chunk (tracking the joints onto a chunk's end-effector states and drawing the robot at the last one), beside
 a real chunk's physics and chunk-boundary render on the same thread.
+`--only policy_episode`: a policy rollout as collection records it (`policy_episode`, then `to_episode`), the
+recording timed with and without the chunk-boundary frames the policy was shown kept, alternating per episode: the
+ratio is what keeping them saves (`--policy` a checkpoint; default an untrained `small` policy, the same cost).
 """
 
 from __future__ import annotations
@@ -189,6 +192,47 @@ def robot_layer_cost(suite: str, task_id: int, image_size: int, camera: str, rep
             "real_chunk_ms": round(real_ms, 1), "robot_layer_over_real_chunk": round(ms / real_ms, 2)}
 
 
+def policy_episode_cost(suite: str, task_id: int, image_size: int, camera: str, repeats: int,
+                        policy: str | None = None, steps: int | None = None) -> dict:
+    """Seconds per recorded policy episode (at most `steps` steps; default the task's limit) with the boundary renders kept / replayed, and their ratio (median)."""
+    import torch
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    from worldenv_core.envs.recording import policy_episode
+    from worldenv_core.models.checkpoint import load_checkpoint
+    from worldenv_core.models.policy import PolicyRunner
+    from worldenv_core.stage import compose_config
+
+    if policy is None:
+        cfg = compose_config("train_policy", [f"+task={suite}", "policy=small", f"task.image_size={image_size}"])
+        model = instantiate(OmegaConf.to_container(cfg.policy, resolve=True), _convert_="all").eval()
+    else:
+        model, _ = load_checkpoint(policy, "policy")
+    runner = PolicyRunner(model, sample=True, noise_scale=1.0)
+    env = LiberoEnv(suite, task_id, cameras=[camera], image_size=image_size)
+    rows = []
+    try:
+        for i in range(repeats):
+            runner.generator.manual_seed(i)
+            t0 = time.perf_counter()
+            with torch.no_grad():
+                traj = policy_episode(env, runner, i, i, steps or env.max_steps)
+            rollout_s, live, took = time.perf_counter() - t0, traj.images, {}
+            for kept in ((True, False) if i % 2 == 0 else (False, True)):
+                traj.images = live if kept else {}
+                t0 = time.perf_counter()
+                to_episode(env, traj, init_state_index=i, seed=i, source="policy")
+                took[kept] = rollout_s + time.perf_counter() - t0
+            rows.append({"frames": len(traj.frames), "kept_s": took[True], "replayed_s": took[False]})
+    finally:
+        env.close()
+    return {"episodes": repeats, "frames_median": statistics.median(r["frames"] for r in rows),
+            "episode_s_boundaries_kept": round(statistics.median(r["kept_s"] for r in rows), 2),
+            "episode_s_boundaries_replayed": round(statistics.median(r["replayed_s"] for r in rows), 2),
+            "kept_over_replayed": round(statistics.median(r["kept_s"] / r["replayed_s"] for r in rows), 3)}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--suite", default="libero_object")
@@ -198,7 +242,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--batch", type=int, default=8, help="imagined rollouts per world-model call")
     parser.add_argument("--worldsim", default=None, help="a train_worldsim checkpoint (default: untrained, same cost)")
-    parser.add_argument("--only", choices=["simulator", "worldsim", "policy", "robot_layer"], default=None)
+    parser.add_argument("--only", choices=["simulator", "worldsim", "policy", "robot_layer", "policy_episode"], default=None)
+    parser.add_argument("--policy", default=None, help="with --only policy_episode: a policy checkpoint")
     parser.add_argument("--policies", nargs="+", default=["small", "lerobot_act"], help="policy configs (conf/policy)")
     parser.add_argument("--threads", type=int, default=1,
                         help="CPU threads for each side: the world model's torch threads and the simulator's "
@@ -213,12 +258,15 @@ def main() -> None:
     result = {}
     if args.only in (None, "policy"):
         result["policy"] = policy_costs(args.policies, args.suite, args.image_size, max(args.repeats, 10))
-    if args.only not in ("worldsim", "policy", "robot_layer"):
+    if args.only == "policy_episode":  # minutes of rendering: asked for by name, not part of the default run
+        result["policy_episode"] = policy_episode_cost(args.suite, args.task_id, args.image_size, args.cameras[0],
+                                                       args.repeats, args.policy)
+    if args.only not in ("worldsim", "policy", "robot_layer", "policy_episode"):
         result["simulator"] = simulator_costs(args.suite, args.task_id, args.image_size, args.cameras, args.repeats)
     if args.only in (None, "robot_layer"):
         result["robot_layer"] = robot_layer_cost(args.suite, args.task_id, args.image_size, args.cameras[0],
                                                  args.repeats, args.batch)
-    if args.only not in ("simulator", "policy", "robot_layer"):
+    if args.only not in ("simulator", "policy", "robot_layer", "policy_episode"):
         result["world_model"] = world_model_speed(args.suite, args.task_id, args.image_size, args.cameras[0],
                                                   args.repeats, args.batch, args.worldsim)
     print(json.dumps(result, indent=2))

@@ -2,7 +2,7 @@
 robot_layer`: the robot layer's cost per rollout and chunk beside a real chunk."""
 import pytest
 
-from benchmarks.bench import policy_costs, robot_layer_cost
+from benchmarks.bench import policy_costs, policy_episode_cost, robot_layer_cost
 from tests.conftest import TINY_SUITE, TINY_TASK
 
 
@@ -21,3 +21,11 @@ def test_robot_layer_cost_times_the_layer_per_rollout_beside_a_real_chunk():
     assert out["robot_layer_ms_per_rollout_chunk"] > 0 and out["real_chunk_ms"] > 0
     ratio = out["robot_layer_ms_per_rollout_chunk"] / out["real_chunk_ms"]
     assert abs(out["robot_layer_over_real_chunk"] - ratio) < 0.01 + 0.01 * ratio
+
+
+@pytest.mark.sim
+def test_policy_episode_cost_times_the_recording_with_and_without_the_kept_boundary_frames():
+    out = policy_episode_cost(TINY_SUITE, TINY_TASK, 32, "agentview", repeats=2, steps=16)
+    assert out["episodes"] == 2 and out["frames_median"] == 17
+    assert out["episode_s_boundaries_kept"] > 0 and out["episode_s_boundaries_replayed"] > 0
+    assert 0 < out["kept_over_replayed"] < 2
