@@ -23,6 +23,11 @@ faithful and where it invents the object.
 `--reflector R` (with `--episodes` and `+task=<suite>`) also scores every episode's real frames at the chunk
 boundaries, as a rollout is scored, and counts per kind how often R crosses its eta: a success model's false
 stops by the way the episode failed (the reward's blind spots, no imagination involved).
+
+`--final-state` (with `--episodes`) puts each episode's last recorded simulator state back in the real simulator and
+measures the task's `On` goals there (`envs/goals.py`): a failure that ends with the object resting on its target
+but 3 cm or more from its centre (LIBERO's tolerance) is counted as **placed off-centre**, not as lost, and the
+median offset of those and of the successes is reported. On libero_spatial most "lost objects" are these.
 """
 
 from __future__ import annotations
@@ -38,7 +43,7 @@ from worldenv_core.cli import user_errors
 from worldenv_core.data.mcap_io.read import glob_episode_files
 from worldenv_core.files import write_text_atomic
 
-KINDS = ("success", "empty grasp", "lost object", "no grasp")
+KINDS = ("success", "empty grasp", "lost object", "no grasp", "placed off-centre")  # the last: --final-state only
 PHASES = ("before a grasp", "holding", "closed on nothing", "after an empty grasp", "after a held grasp")
 
 
@@ -125,20 +130,44 @@ def reflector_stops(ep, judge) -> bool:
     return first_stop(steps, model.score_prefixes(video, ep.meta.instruction, steps, encoder).numpy(), eta) is not None
 
 
-def failure_modes(paths: list[Path], depth: tuple[float, float] | None = None, judge=None, **thresholds) -> dict:
+def end_goals(ep, envs: dict) -> list:
+    """The task's `On` goals (`envs.goals.OnOffset`) in the episode's last recorded state, put back in the real
+    simulator started as the episode was (fixtures are placed at reset); `envs`: one physics-only env per task."""
+    from worldenv_core.envs.goals import on_offsets
+    from worldenv_core.envs.libero_env import LiberoEnv
+
+    key = (ep.meta.suite, ep.meta.task_id)
+    if key not in envs:
+        envs[key] = LiberoEnv(*key, cameras=(), render=False)
+    env = envs[key]
+    env.reset(init_state=ep.meta.init_state_index if ep.meta.init_state_index >= 0 else None, seed=ep.meta.seed)
+    env.set_sim_state(ep.sim_state[-1])
+    return on_offsets(env)
+
+
+def failure_modes(paths: list[Path], depth: tuple[float, float] | None = None, judge=None, final_state: bool = False,
+                  **thresholds) -> dict:
     """Counts of each kind overall, by noise scale and by task; with `depth`, how many failures had their first
     empty grasp over before the window's start / end (fractions of each episode's length); with `judge`
-    (`reflector_stops`), per kind how many episodes the success model called a success."""
+    (`reflector_stops`), per kind how many episodes the success model called a success; with `final_state`, failures
+    that end with a goal object set down off its target's centre are "placed off-centre" (`end_goals`), and the
+    median offsets of those and of the successes are given."""
     from worldenv_core.data.mcap_io.read import read_episode
 
     if not paths:
         raise FileNotFoundError("no episode matched --episodes")
     total, by_noise, by_task = Counter(), defaultdict(Counter), defaultdict(Counter)
     missed_by, stopped = Counter(), Counter()
-    first_empty_at = []
+    first_empty_at, offsets, envs = [], defaultdict(list), {}
     for path in paths:
-        ep = read_episode(path, cameras=[judge[3]] if judge else [], load_sim_state=False)
+        ep = read_episode(path, cameras=[judge[3]] if judge else [], load_sim_state=final_state)
         kind, first_empty = classify(ep.proprio[:, 6], bool(ep.meta.success), **thresholds)
+        if final_state:
+            goals = end_goals(ep, envs)
+            if kind != "success" and any(g.off_centre for g in goals):
+                kind = "placed off-centre"
+            if kind in ("success", "placed off-centre"):
+                offsets[kind] += [g.offset_m for g in goals]
         if judge is not None:
             stopped[kind] += reflector_stops(ep, judge)
         noise = str(ep.meta.extra.get("noise_scale", "-")) if isinstance(ep.meta.extra, dict) else "-"
@@ -155,6 +184,10 @@ def failure_modes(paths: list[Path], depth: tuple[float, float] | None = None, j
            "by_task": {k: dict(v) for k, v in sorted(by_task.items())}, "failures": failures,
            "first_empty_grasp_ends": {q: float(np.quantile(first_empty_at, p)) for q, p in
                                       (("q25", 0.25), ("median", 0.5), ("q75", 0.75))} if first_empty_at else None}
+    for env in envs.values():
+        env.close()
+    if final_state:
+        out["median_offset_m"] = {k: float(np.median(v)) for k, v in offsets.items() if v}
     if judge is not None:
         out["reflector_says_success"] = {k: stopped[k] / total[k] for k in KINDS if total[k]}
     if depth is not None:
@@ -167,16 +200,17 @@ def failure_modes(paths: list[Path], depth: tuple[float, float] | None = None, j
 def table(modes: dict) -> str:
     """Markdown: one row per noise scale and the total, the share of each kind (and, where the success model
     judged them, the share of each kind it called a success)."""
-    head = ["noise scale", "episodes", *KINDS]
+    kinds = KINDS if "median_offset_m" in modes else KINDS[:-1]
+    head = ["noise scale", "episodes", *kinds]
     lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
     rows = [*modes["by_noise_scale"].items(), ("all", modes["counts"])]
     for name, counts in rows:
         n = sum(counts.values())
-        lines.append("| " + " | ".join([name, str(n), *(f"{counts.get(k, 0) / n:.0%}" for k in KINDS)]) + " |")
+        lines.append("| " + " | ".join([name, str(n), *(f"{counts.get(k, 0) / n:.0%}" for k in kinds)]) + " |")
     said = modes.get("reflector_says_success")
     if said:
         lines.append("| the success model says success | | " + " | ".join(
-            f"{said[k]:.0%}" if k in said else "-" for k in KINDS) + " |")
+            f"{said[k]:.0%}" if k in said else "-" for k in kinds) + " |")
     return "\n".join(lines)
 
 
@@ -203,6 +237,8 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--min-steps", type=int, default=8, help="frames a closure lasts to count as a grasp")
     p.add_argument("--reflector", help="with --episodes: a success model checkpoint judging the real frames")
     p.add_argument("--eta", type=float, help="with --reflector: its threshold (default: the reflector's own)")
+    p.add_argument("--final-state", action="store_true",
+                   help="with --episodes: measure the goals in each episode's last state (the real simulator)")
     p.add_argument("--json", type=Path, help="also write the counts here")
     p.add_argument("overrides", nargs="*", help="Hydra overrides naming the task (+task=...), for --reflector")
     args = p.parse_args(argv)
@@ -222,8 +258,11 @@ def main(argv: list[str] | None = None) -> dict:
     judge = None
     if args.reflector:
         judge = load_judge(args.reflector, args.eta, args.overrides)
-    modes = failure_modes(paths, tuple(args.depth) if args.depth else None, judge, **thresholds)
+    modes = failure_modes(paths, tuple(args.depth) if args.depth else None, judge, args.final_state, **thresholds)
     print(table(modes))
+    if modes.get("median_offset_m"):
+        print("median distance of the goal object from its target's centre at the end: " + ", ".join(
+            f"{k} {v * 100:.1f} cm" for k, v in modes["median_offset_m"].items()))
     if modes.get("failures_missed_before"):
         m = modes["failures_missed_before"]
         print(f"failures whose first empty grasp was over by the window's start / end: "

@@ -101,3 +101,31 @@ def test_the_success_models_verdicts_are_counted_per_kind(tmp_path):
     assert always["reflector_says_success"] == {"success": 1.0, "lost object": 1.0}
     assert never["reflector_says_success"] == {"success": 0.0, "lost object": 0.0}
     assert "| the success model says success | | 100% | - | 100% | - |" in table(always)
+
+
+@pytest.mark.sim
+def test_a_failure_that_sets_the_bowl_down_off_the_plates_centre_is_counted_apart(tmp_path):
+    """The last recorded state, put back in the real simulator, says where the bowl ended (libero_spatial 0)."""
+    from tests.worldenv_core.envs.test_goals import set_down
+    from worldenv_core.data.mcap_io import write_episode
+    from worldenv_core.envs.libero_env import LiberoEnv
+
+    env = LiberoEnv("libero_spatial", 0, cameras=(), render=False)
+    ends = {}
+    for name, dx in (("untouched", None), ("centre", 0.01), ("off", 0.05)):
+        env.reset(0)
+        if dx is not None:
+            set_down(env, "akita_black_bowl_1", "plate_1", dx)
+        ends[name] = env.raw.get_sim_state().astype(np.float64)
+    env.close()
+    rng = np.random.default_rng(0)
+    for i, (end, success) in enumerate((("centre", True), ("off", False), ("untouched", False))):
+        ep = _episode(rng, EMPTY_THEN_HELD, success, 0, "1.0")
+        ep.meta.suite, ep.meta.init_state_index = "libero_spatial", 0
+        ep.sim_state = np.repeat(ends[end][None], len(EMPTY_THEN_HELD), axis=0)
+        write_episode(tmp_path / f"ep{i}.mcap", ep)
+    modes = failure_modes(sorted(tmp_path.glob("ep*.mcap")), final_state=True)
+    assert modes["counts"] == {"success": 1, "placed off-centre": 1, "lost object": 1}
+    assert modes["median_offset_m"] == {"success": pytest.approx(0.01, abs=0.005),
+                                        "placed off-centre": pytest.approx(0.05, abs=0.005)}
+    assert "placed off-centre" in table(modes) and "placed off-centre" not in table(failure_modes([tmp_path / "ep0.mcap"]))
