@@ -138,9 +138,12 @@ def end_goals(ep, envs: dict) -> list:
 
     key = (ep.meta.suite, ep.meta.task_id)
     if key not in envs:
-        envs[key] = LiberoEnv(*key, cameras=(), render=False)
-    env = envs[key]
-    env.reset(init_state=ep.meta.init_state_index if ep.meta.init_state_index >= 0 else None, seed=ep.meta.seed)
+        envs[key] = [LiberoEnv(*key, cameras=(), render=False), None]
+    env, last_start = envs[key]
+    start = (ep.meta.init_state_index if ep.meta.init_state_index >= 0 else None, ep.meta.seed)
+    if start != last_start:  # the same start places the fixtures the same: no second hard reset
+        env.reset(init_state=start[0], seed=start[1])
+        envs[key][1] = start
     env.set_sim_state(ep.sim_state[-1])
     return on_offsets(env)
 
@@ -184,7 +187,7 @@ def failure_modes(paths: list[Path], depth: tuple[float, float] | None = None, j
            "by_task": {k: dict(v) for k, v in sorted(by_task.items())}, "failures": failures,
            "first_empty_grasp_ends": {q: float(np.quantile(first_empty_at, p)) for q, p in
                                       (("q25", 0.25), ("median", 0.5), ("q75", 0.75))} if first_empty_at else None}
-    for env in envs.values():
+    for env, _ in envs.values():
         env.close()
     if final_state:
         out["median_offset_m"] = {k: float(np.median(v)) for k, v in offsets.items() if v}

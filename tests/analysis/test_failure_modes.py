@@ -112,8 +112,8 @@ def test_a_failure_that_sets_the_bowl_down_off_the_plates_centre_is_counted_apar
 
     env = LiberoEnv("libero_spatial", 0, cameras=(), render=False)
     ends = {}
+    env.reset(0)
     for name, dx in (("untouched", None), ("centre", 0.01), ("off", 0.05)):
-        env.reset(0)
         if dx is not None:
             set_down(env, "akita_black_bowl_1", "plate_1", dx)
         ends[name] = env.raw.get_sim_state().astype(np.float64)
