@@ -151,15 +151,18 @@ research-checkpoints:
 # The imagined route's data on a fresh machine (results/imagined_route.md): the expert demos, the released SFT
 # policy's exploration rollouts at three Laplace noise scales (EXPLORE_EPISODES per task: 100 is the 1,000-rollout
 # collection, about 4 hours on 2 cores), and 3 unseen rollouts per task collected apart (seed 1, data/unseen) for
-# the keyframe checks. Every collection resumes episode by episode: the same command goes on.
+# the keyframe checks. Every collection resumes episode by episode: the same command goes on. EXPLORE_WORKERS=1
+# leaves a core to a training beside it (the workers do not decide the episodes).
 EXPLORE_EPISODES ?= 100
+EXPLORE_WORKERS ?= 2
 exploration: setup
 	$(PY) -m stages.collect $(STAGE_ARGS) source=expert post_success_steps=32 workers=2
 	$(PY) -m stages.collect $(STAGE_ARGS) source=policy policy_from=checkpoints/$(TASK)/sft \
-	  episodes_per_task=$(EXPLORE_EPISODES) 'noise_scale=[1.0,1.6,2.5]' post_success_steps=32 lerobot_export=false workers=2
+	  episodes_per_task=$(EXPLORE_EPISODES) 'noise_scale=[1.0,1.6,2.5]' post_success_steps=32 lerobot_export=false \
+	  workers=$(EXPLORE_WORKERS)
 	$(PY) -m stages.collect +task=$(TASK) scale=$(SCALE) experiment_dir=$(EXP)-unseen data_dir=data/unseen seed=1 \
 	  source=policy policy_from=checkpoints/$(TASK)/sft episodes_per_task=3 'noise_scale=[1.0,1.6,2.5]' \
-	  post_success_steps=32 lerobot_export=false workers=2
+	  post_success_steps=32 lerobot_export=false workers=$(EXPLORE_WORKERS)
 
 # LeRobot's ACT for libero_spatial (checkpoints/README.md): 31.6 MB, so kept in the history, not the tree; extracted
 # at its path (git-ignored) from the commit that holds it (a shallow clone needs `git fetch --unshallow` first).
