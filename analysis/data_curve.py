@@ -92,7 +92,7 @@ def table(curves: dict[str, list[dict]]) -> str:
 
 def plot_curve(curves: dict[str, list[dict]], path: str | Path, title: str = "") -> Path:
     """Left: AUROC and hack rate by rollouts; right: imagined and real success of the same actions."""
-    fig, (left, right) = figure(1, 2, figsize=(9, 3.6))
+    fig, (left, right) = figure(1, 2, figsize=(10, 5.2))
 
     def values(rows, key):  # a figure a point did not measure (AUROC from starts) is left out of its line
         return [math.nan if r.get(key) is None else r[key] for r in rows]
@@ -107,7 +107,7 @@ def plot_curve(curves: dict[str, list[dict]], path: str | Path, title: str = "")
         right.plot(x, values(rows, "real_success"), "x:", color=color, label=f"real, same actions ({g})")
     for ax, name in ((left, "the verdict"), (right, "success")):
         ax.set(xlabel="exploration rollouts in the world model's data", ylim=(-0.02, 1.02), title=name)
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=6, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2)  # below: the lines stay visible
     if title:
         fig.suptitle(title, fontsize=8)
     fig.tight_layout()
