@@ -57,7 +57,7 @@ def read_ledger_point(path: str | Path) -> dict:
     contexts = [c for r in rows for c in r["imagined_by_context"]]
     return {"rollouts": pooled["episodes"], "imagined_success": pooled["imagined_success"],
             "real_success": pooled["real_success"], "auroc": None, "recall": pooled["recall"],
-            "precision": 1 - hacks / imagined if imagined else None, "hack_rate": pooled["hack_rate"], "hacks": hacks,
+            "precision": 1 - pooled["hack_rate"], "hack_rate": pooled["hack_rate"], "hacks": hacks,
             "imagined_mixed_groups": sum(0 < c < 1 for c in contexts) / len(contexts) if contexts else None,
             "step_cosine": pooled["step_cosine"], "reward_step_cosine": pooled.get("reward_step_cosine"),
             "record": path.stem}
