@@ -19,6 +19,9 @@ and compares the two verdicts where it matters for ES:
     python -m analysis.imagined_ledger +task=libero_spatial --ledger results/rl_recipes/es_many_pairs_seed0_ledger \\
         --policy checkpoints/libero_spatial/sft --iterations 1 10 20 --json results/rl_recipes/imagined_ledger.json
 
+Iterations run side by side (one-thread processes, each with its own `--iterations` and `--json`) become one result
+with `--merge a.json b.json --json all.json`, pooled as one run over every iteration would be.
+
 Where the verdict is faithful (from about a third of the way into a task), the question is asked of keyframes:
 `--episodes` (recorded episodes, e.g. demos or the policy's own rollouts) puts `--pairs` members drawn around
 `--policy` at `--frames` keyframes per episode at `--depth`, runs each for real from there (those real episodes
@@ -93,6 +96,39 @@ def pooled(rows: list[dict]) -> dict:
                 "imagined_reward": sum(r["imagined_reward"] * r["episodes"] for r in rows) / n}
                if all("reward_dot" in r for r in rows) else {})}
 
+
+
+# What makes two results parts of one replay: the same ledger, starting policy, models, verdict and horizon.
+SAME_REPLAY = ("ledger", "policy", "worldsim", "reflector", "robot_layer", "eta", "horizon")
+
+
+def merge_results(results: list[dict]) -> dict:
+    """--ledger results of disjoint iterations of one replay -> one result, the iterations pooled again (the
+    pooled figures come from each row's sums, so the merge equals one run over every iteration)."""
+    first = results[0]
+    for r in results[1:]:
+        differ = [k for k in SAME_REPLAY if r.get(k) != first.get(k)]
+        if differ:
+            raise ConfigError(f"--merge: the results differ in {', '.join(differ)}; only parts of one replay merge")
+    if not first.get("ledger"):
+        raise ConfigError("--merge: only --ledger results merge (keyframe results hold one row of their own)")
+    rows: dict[str, dict] = {}
+    for r in results:
+        twice = sorted(set(rows) & set(r["iterations"]), key=int)
+        if twice:
+            raise ConfigError(f"--merge: iteration(s) {', '.join(twice)} appear in two results")
+        rows.update(r["iterations"])
+    rows = dict(sorted(rows.items(), key=lambda kv: int(kv[0])))
+    return {**first, "iterations": rows, "pooled": pooled(list(rows.values()))}
+
+
+def read_result(path: Path) -> dict:
+    try:
+        result = json.loads(Path(path).read_text())
+        result["iterations"], result["pooled"]  # noqa: B018 (the keys a result has)
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ConfigError(f"--merge {path}: not an imagined_ledger --json result ({e})") from None
+    return result
 
 
 def require_checkpoints(named: list[tuple[str, str]]) -> None:
@@ -202,10 +238,13 @@ def keyframe_rows(args, contract, env, camera, encoder) -> dict:
 
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--policy", required=True, help="the run's starting policy (checkpoint folder)")
+    ap.add_argument("--policy", help="the run's starting policy (checkpoint folder); not with --merge")
     source = ap.add_mutually_exclusive_group(required=True)
     source.add_argument("--ledger", type=Path, help="a real-route ES ledger (iter_NNNN.json)")
     source.add_argument("--episodes", nargs="+", help="recorded episodes (globs) whose keyframes are the contexts")
+    source.add_argument("--merge", type=Path, nargs="+",
+                        help="--json results of the same ledger's other iterations (e.g. run as one-thread processes "
+                             "side by side): one result, pooled again, into --json")
     ap.add_argument("--iterations", type=int, nargs="+", help="with --ledger: its iterations to replay (from 1)")
     ap.add_argument("--frames", type=int, default=2, help="with --episodes: keyframes per episode")
     ap.add_argument("--depth", type=float, nargs=2, default=[1 / 3, 1.0], help="with --episodes: where they lie")
@@ -223,7 +262,16 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--json", type=Path, help="write the per-iteration and pooled figures here")
     ap.add_argument("overrides", nargs="*", help="Hydra overrides naming the task (+task=...)")
     args = ap.parse_args(argv)
+    if args.merge and not args.json:
+        ap.error("--merge needs --json (where the merged result goes)")
+    if not args.merge and not args.policy:
+        ap.error("--policy is required with --ledger or --episodes")
     with user_errors():
+        if args.merge:
+            result = merge_results([read_result(p) for p in args.merge])
+            print(line("pooled", result["pooled"]))
+            write_text_atomic(args.json, json.dumps(result, indent=1))
+            return result
         from worldenv_core.imagination.env import build_imagined_env, check_depth
         from worldenv_core.models.text import InstructionEncoder
         from worldenv_core.rl.termination import reflector_eta

@@ -55,3 +55,42 @@ def test_the_cli_names_an_iteration_the_ledger_does_not_hold(tmp_path, capsys):
     with pytest.raises(SystemExit):  # keyframes: where they lie is checked before any model is loaded
         main(["+task=tiny", "--episodes", "x.mcap", "--policy", str(tmp_path), "--depth", "0.6", "0.2"])
     assert "--depth: a context depth [lo, hi] needs 0 <= lo < hi <= 1" in capsys.readouterr().err
+
+
+def _result(rows: dict, worldsim: str = "w") -> dict:
+    return {"ledger": "l", "episodes": None, "policy": "p", "worldsim": worldsim, "robot_layer": False, "reflector": "r",
+            "eta": 0.5, "horizon": 8, "iterations": rows, "pooled": pooled(list(rows.values()))}
+
+
+def test_results_of_disjoint_iterations_merge_into_the_one_run_over_all(tmp_path):
+    import json
+
+    a = verdict_agreement(torch.tensor([[1, 0]]), torch.tensor([[1, 0]]))
+    b = verdict_agreement(torch.tensor([[0, 1, 1, 0]]), torch.tensor([[1, 1, 1, 1]]))
+    c = verdict_agreement(torch.tensor([[1, 1]]), torch.tensor([[0, 1]]))
+    parts = []
+    for k, rows in enumerate([{"20": b}, {"1": a, "5": c}]):  # written as the CLI writes them, keys as strings
+        parts.append(tmp_path / f"part{k}.json")
+        parts[-1].write_text(json.dumps(_result(rows)))
+    merged = main(["--merge", *map(str, parts), "--json", str(tmp_path / "all.json")])
+    assert list(merged["iterations"]) == ["1", "5", "20"]  # in iteration order
+    assert merged["pooled"] == pytest.approx(pooled([a, c, b]), nan_ok=True)
+    assert json.loads((tmp_path / "all.json").read_text())["pooled"] == pytest.approx(merged["pooled"], nan_ok=True)
+
+
+def test_results_of_other_replays_or_the_same_iteration_twice_are_refused(tmp_path, capsys):
+    import json
+
+    a = verdict_agreement(torch.tensor([[1, 0]]), torch.tensor([[1, 0]]))
+    for name, result in [("x", _result({"1": a})), ("y", _result({"2": a}, worldsim="other")), ("z", _result({"1": a}))]:
+        (tmp_path / f"{name}.json").write_text(json.dumps(result))
+    (tmp_path / "bad.json").write_text("{}")
+    out = str(tmp_path / "all.json")
+    for parts, message in [(["x", "y"], "the results differ in worldsim"), (["x", "z"], "iteration(s) 1 appear in two"),
+                           (["x", "bad"], "not an imagined_ledger --json result")]:
+        with pytest.raises(SystemExit):
+            main(["--merge", *(str(tmp_path / f"{p}.json") for p in parts), "--json", out])
+        assert message in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # the merged result must go somewhere
+        main(["--merge", str(tmp_path / "x.json")])
+    assert "--merge needs --json" in capsys.readouterr().err
