@@ -151,8 +151,9 @@ research-checkpoints:
 # The imagined route's data on a fresh machine (results/imagined_route.md): the expert demos, the released SFT
 # policy's exploration rollouts at three Laplace noise scales (EXPLORE_EPISODES per task: 100 is the 1,000-rollout
 # collection, about 8 hours on 2 cores: 2 episodes a minute measured alone), and 3 unseen rollouts per task
-# collected apart (seed 1, data/unseen) for the keyframe checks. Every collection resumes episode by episode: the same command goes on. EXPLORE_WORKERS=1
-# leaves a core to a training beside it (the workers do not decide the episodes).
+# collected apart (seed 1, data/unseen) for the keyframe checks. Every collection resumes episode by episode: the
+# same command goes on. EXPLORE_WORKERS=1 leaves a core to a training beside it (the workers do not decide the
+# episodes).
 EXPLORE_EPISODES ?= 100
 EXPLORE_WORKERS ?= 2
 exploration: setup
