@@ -125,9 +125,10 @@ def merge_results(results: list[dict]) -> dict:
 def read_result(path: Path) -> dict:
     try:
         result = json.loads(Path(path).read_text())
-        result["iterations"], result["pooled"]  # noqa: B018 (the keys a result has)
-    except (OSError, ValueError, KeyError, TypeError) as e:
+    except (OSError, ValueError) as e:
         raise ConfigError(f"--merge {path}: not an imagined_ledger --json result ({e})") from None
+    if not isinstance(result, dict) or not {"iterations", "pooled"} <= result.keys():
+        raise ConfigError(f"--merge {path}: not an imagined_ledger --json result (no iterations and pooled figures)")
     return result
 
 
@@ -267,43 +268,42 @@ def main(argv: list[str] | None = None) -> dict:
     if not args.merge and not args.policy:
         ap.error("--policy is required with --ledger or --episodes")
     with user_errors():
-        if args.merge:
-            result = merge_results([read_result(p) for p in args.merge])
-            print(line("pooled", result["pooled"]))
-            write_text_atomic(args.json, json.dumps(result, indent=1))
-            return result
-        from worldenv_core.imagination.env import build_imagined_env, check_depth
-        from worldenv_core.models.text import InstructionEncoder
-        from worldenv_core.rl.termination import reflector_eta
-        from worldenv_core.stage import compose_config, task_contract
-
-        cfg = compose_config("post_train_loop", ["scale=small", *args.overrides])
-        contract = task_contract(cfg)
-        entries = ledger_entries(args) if args.ledger else None
-        if not args.ledger:
-            try:
-                check_depth(args.depth)
-            except ValueError as e:
-                raise ConfigError(f"--depth: {e}") from None
-        worldsim = args.worldsim or f"checkpoints/{contract.suite}/worldsim"
-        reflector = args.reflector or f"checkpoints/{contract.suite}/reflector"
-        require_checkpoints([("--worldsim", worldsim), ("--reflector", reflector), ("--policy", args.policy)])
-        encoder = InstructionEncoder()
-        if args.robot_layer and args.ledger:
-            raise ConfigError("--robot-layer draws the robot in recorded scenes: it needs --episodes' keyframes")
-        env, camera = build_imagined_env(worldsim, reflector, reflector_eta(reflector, args.eta), encoder,
-                                         args.horizon or contract.max_steps, None, "cpu", contract,
-                                         robot_layer=args.robot_layer)
-        rows = (ledger_rows(args, entries, contract, env, camera, encoder) if args.ledger else
-                keyframe_rows(args, contract, env, camera, encoder))
-        result = {"ledger": str(args.ledger) if args.ledger else None, "episodes": args.episodes, "policy": args.policy,
-                  "worldsim": worldsim, "robot_layer": args.robot_layer, "reflector": reflector, "eta": env.eta,
-                  "horizon": env.horizon,
-                  "iterations": rows, "pooled": pooled(list(rows.values()))}
+        result = merge_results([read_result(p) for p in args.merge]) if args.merge else replay(args)
         print(line("pooled", result["pooled"]))
         if args.json:
             write_text_atomic(args.json, json.dumps(result, indent=1))
         return result
+
+
+def replay(args) -> dict:
+    """--ledger or --episodes: the members replayed in imagination against their real outcomes."""
+    from worldenv_core.imagination.env import build_imagined_env, check_depth
+    from worldenv_core.models.text import InstructionEncoder
+    from worldenv_core.rl.termination import reflector_eta
+    from worldenv_core.stage import compose_config, task_contract
+
+    cfg = compose_config("post_train_loop", ["scale=small", *args.overrides])
+    contract = task_contract(cfg)
+    entries = ledger_entries(args) if args.ledger else None
+    if not args.ledger:
+        try:
+            check_depth(args.depth)
+        except ValueError as e:
+            raise ConfigError(f"--depth: {e}") from None
+    worldsim = args.worldsim or f"checkpoints/{contract.suite}/worldsim"
+    reflector = args.reflector or f"checkpoints/{contract.suite}/reflector"
+    require_checkpoints([("--worldsim", worldsim), ("--reflector", reflector), ("--policy", args.policy)])
+    encoder = InstructionEncoder()
+    if args.robot_layer and args.ledger:
+        raise ConfigError("--robot-layer draws the robot in recorded scenes: it needs --episodes' keyframes")
+    env, camera = build_imagined_env(worldsim, reflector, reflector_eta(reflector, args.eta), encoder,
+                                     args.horizon or contract.max_steps, None, "cpu", contract,
+                                     robot_layer=args.robot_layer)
+    rows = (ledger_rows(args, entries, contract, env, camera, encoder) if args.ledger else
+            keyframe_rows(args, contract, env, camera, encoder))
+    return {"ledger": str(args.ledger) if args.ledger else None, "episodes": args.episodes, "policy": args.policy,
+            "worldsim": worldsim, "robot_layer": args.robot_layer, "reflector": reflector, "eta": env.eta,
+            "horizon": env.horizon, "iterations": rows, "pooled": pooled(list(rows.values()))}
 
 
 if __name__ == "__main__":
