@@ -27,3 +27,26 @@ def test_scale_settings_that_only_choose_evaluation_do_not_name_work():
     a = work_dir("exp", "train_reflector", {"scale": scale}, [])
     assert a == work_dir("exp", "train_reflector", {"scale": {**scale, "eta_folds": 5}}, [])
     assert a != work_dir("exp", "train_reflector", {"scale": {**scale, "reflector_steps": 3000}}, [])
+
+
+def test_a_scale_sets_the_default_networks_sizes_and_the_others_keep_theirs():
+    """scale=tiny trains the tests' tiny networks (the smoke proves plumbing); small keeps each model config's
+    own sizes; an override on the command line still wins, and the latent reflector follows the world model's."""
+    from hydra.utils import instantiate
+
+    from worldenv_core.stage import compose_config
+
+    def sizes(scale):
+        task = "+task=tiny" if scale == "tiny" else "+task=libero_spatial"
+        p = compose_config("train_policy", [task, f"scale={scale}"]).policy
+        w = compose_config("train_worldsim", [task, f"scale={scale}"]).worldsim
+        r = compose_config("train_reflector", [task, f"scale={scale}"]).reflector
+        latent = compose_config("train_reflector", [task, f"scale={scale}", "reflector=worldsim_latent"]).reflector
+        return (p.hidden, list(p.backbone.widths), w.width, list(w.ae_widths), r.d_model, list(r.frame_encoder.widths),
+                list(latent.frame_encoder.ae_widths))
+
+    assert sizes("tiny") == (32, [8, 8, 8, 8], 16, [8, 16], 16, [8, 16], [8, 16])
+    assert sizes("small") == (512, [16, 32, 64, 128], 48, [32, 64], 128, [32, 64, 128, 128], [32, 64])
+    assert compose_config("train_policy", ["+task=tiny", "scale=tiny", "policy.hidden=64"]).policy.hidden == 64
+    cfg = compose_config("train_policy", ["+task=tiny", "scale=tiny"])
+    assert sum(p.numel() for p in instantiate(cfg.policy).parameters()) < 2e5  # the smoke's policy is tiny

@@ -140,9 +140,10 @@ class LiberoEnv:
         return self.task.max_steps
 
     # -- episode control ----------------------------------------------------------------------
-    def reset(self, init_state: int | np.ndarray | None = None, seed: int | None = None) -> Frame:
+    def reset(self, init_state: int | np.ndarray | None = None, seed: int | None = None, hard: bool = False) -> Frame:
         """Reset to a benchmark init state (an index or a flat MuJoCo state), or, with
-        `init_state=None`, to a fresh random placement drawn from `seed`.
+        `init_state=None`, to a fresh random placement drawn from `seed`. `hard`: rebuild the scene even where one is
+        kept (and keep the new one).
 
         The seed matters in both cases: LIBERO's reset re-samples the *fixtures'* placement
         (cabinets, stoves: model.body_pos) and the arm's start from numpy's global RNG, and an init state restores
@@ -152,7 +153,7 @@ class LiberoEnv:
         # fresh placements only: a benchmark init state set over a sampled reset came back ~1e-17 apart after a
         # step (MuJoCo's solver scratch differs between a reused and a new MjData), and each is reset once anyway
         key = seed if self._scene_cache and init_state is None else None
-        if key is not None and key in self._scenes:
+        if key is not None and key in self._scenes and not hard:
             self._scenes.move_to_end(key)
             self._obs = restore_scene(self._env, self._scenes[key], seed)
             return self.observe()

@@ -39,6 +39,12 @@ def test_a_kept_scene_comes_back_as_the_hard_reset_made_it():
         np.testing.assert_allclose(b, a, rtol=0, atol=1e-12, err_msg=f"{name} differs after a restored reset")
     for name, a, b in zip(("success", "render"), expected[2:], got[2:]):
         assert np.array_equal(a, b), f"{name} differs after a restored reset"
+    # hard=True rebuilds the scene although one is kept (a replay that missed its recorded state from the kept scene
+    # tries again from the reset the recording made: `replay.restore`), and keeps the rebuilt one
+    kept = env._scenes[start["seed"]]
+    rebuilt = _episode(env, env.reset(hard=True, **start))
+    assert env._scenes[start["seed"]] is not kept
+    np.testing.assert_array_equal(rebuilt[0], expected[0], err_msg="a hard reset of a reused env is a fresh env's")
     env.close()
 
 
