@@ -118,6 +118,7 @@ class LiberoEnv:
         self._property_samplers = len(getattr(self._env.env, "object_property_initializers", []))
         self._scenes: OrderedDict[int, Scene] = OrderedDict()  # fresh placements' scenes, by seed
         self._scene_cache = int(scene_cache)
+        self.restored = False  # whether the last reset put a kept scene back instead of rebuilding it
         self._moments: OrderedDict[str, tuple[Moment, object]] = OrderedDict()  # points inside episodes (`keep_moment`), by key
         self._seed = 0  # the last reset's: a kept moment's scene is redrawn from it
 
@@ -153,7 +154,8 @@ class LiberoEnv:
         # fresh placements only: a benchmark init state set over a sampled reset came back ~1e-17 apart after a
         # step (MuJoCo's solver scratch differs between a reused and a new MjData), and each is reset once anyway
         key = seed if self._scene_cache and init_state is None else None
-        if key is not None and key in self._scenes and not hard:
+        self.restored = key is not None and key in self._scenes and not hard
+        if self.restored:
             self._scenes.move_to_end(key)
             self._obs = restore_scene(self._env, self._scenes[key], seed)
             return self.observe()

@@ -129,8 +129,8 @@ def restore(env: LiberoEnv, start: RealStart, tolerance: float = 1e-3) -> Frame:
         frame, gap = kept
     else:
         frame, gap = _replay_to(env, start)
-        if gap > tolerance:  # a kept scene put back is not the hard reset bit for bit after every contact (measured:
-            frame, gap = _replay_to(env, start, hard=True)  # 0.504 at frame 187 of a rollout): the recording's reset
+        if gap > tolerance and env.restored:  # a kept scene put back is not the hard reset bit for bit after every
+            frame, gap = _replay_to(env, start, hard=True)  # contact (measured: 0.504 at frame 187 of a rollout)
         if start.frame:
             env.keep_moment(start.key, gap)
     if gap > tolerance:
