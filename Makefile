@@ -54,7 +54,10 @@ expert-table: setup
 # The pipeline so far, in one experiment directory; each stage finds its inputs through
 # $(EXP)/manifest.jsonl and skips work already done (re-running resumes).
 STAGE_ARGS = +task=$(TASK) scale=$(SCALE) experiment_dir=$(EXP)
-# Collections go on for 32 steps after success: the reflector's positive frames.
+# Collections go on for 32 steps after success: the reflector's positive frames. IMAGINATION: where LOOP's imagined
+# rollouts start (starts: the paper's episode starts; keyframes: real keyframes, a bounded horizon and the paired-replay
+# guard, conf/imagination/).
+IMAGINATION ?= starts
 pipeline: setup
 	$(PY) -m stages.collect $(STAGE_ARGS) source=expert post_success_steps=32
 	$(PY) -m stages.train_policy $(STAGE_ARGS)
@@ -63,7 +66,7 @@ pipeline: setup
 	$(PY) -m stages.train_reflector $(STAGE_ARGS)
 	# does the imagined env judge like the real one? (the SFT policy's imagined rollouts, paired replay)
 	$(PY) -m stages.evaluate_imagination $(STAGE_ARGS)
-	$(PY) -m stages.post_train_loop $(STAGE_ARGS)
+	$(PY) -m stages.post_train_loop $(STAGE_ARGS) imagination=$(IMAGINATION)
 	# termination=all: each episode once to the horizon, oracle / fixed / reflector read off it
 	for policy in sft post_trained; do \
 	  $(PY) -m stages.evaluate $(STAGE_ARGS) policy_from=$$policy termination=all || exit 1; done
@@ -71,14 +74,19 @@ pipeline: setup
 # One refit round of the imagined route (after `make pipeline`): the post-trained policy's own rollouts
 # (REFIT_EPISODES per task, real episodes counted in the manifest) collect into a folder of their own; the world
 # model and the reflector are refit on every collection; LOOP goes on from the post-trained policy. REFIT_ARGS
-# reach the world model (e.g. init_from=<record> to go on from the last one instead of from scratch).
+# reach the world model (e.g. init_from=<record> to go on from the last one instead of from scratch),
+# REFIT_REFLECTOR_ARGS the reflector's (eta_folds=0 eta=<the last one's>: keep the threshold chosen before). The
+# refit round's policy ends on the benchmark's init states as the pipeline's do.
 REFIT_EPISODES ?= 20
+REFIT_REFLECTOR_ARGS ?=
 refit: setup
 	$(PY) -m stages.collect $(STAGE_ARGS) source=policy policy_from=post_trained post_success_steps=32 \
 	  episodes_per_task=$(REFIT_EPISODES)
 	$(PY) -m stages.train_worldsim $(STAGE_ARGS) policy_collections=all $(REFIT_ARGS)
-	$(PY) -m stages.train_reflector $(STAGE_ARGS) policy_collections=all
-	$(PY) -m stages.post_train_loop $(STAGE_ARGS) policy_from=post_trained policy_collections=all
+	$(PY) -m stages.train_reflector $(STAGE_ARGS) policy_collections=all $(REFIT_REFLECTOR_ARGS)
+	$(PY) -m stages.post_train_loop $(STAGE_ARGS) policy_from=post_trained policy_collections=all \
+	  imagination=$(IMAGINATION)
+	$(PY) -m stages.evaluate $(STAGE_ARGS) policy_from=post_trained termination=all
 
 # Verdict fidelity and the world model as a policy evaluator: each policy at each Laplace noise scale acts
 # in imagination, its actions are replayed in the real simulator (needs the pipeline's stages up to
@@ -215,9 +223,12 @@ rl-figures: setup
 	$(PY) -m analysis.rl_curves $(foreach r,$(ES_RUNS),--run $(r)=results/rl_recipes/$(r)_ledger) \
 	  --json results/rl_recipes --figure docs/img/rl_curves_es.png --markdown results/rl_recipes/curves_es.md
 
-# The same pipeline on the tiny task and scale: minutes, proves the plumbing.
+# The same pipeline on the tiny task and scale, with the imagined route of the peers (keyframes, the guard) and one
+# refit round: minutes, proves the plumbing.
 smoke:
-	$(MAKE) pipeline TASK=tiny SCALE=tiny EXP=outputs/smoke
+	$(MAKE) pipeline TASK=tiny SCALE=tiny EXP=outputs/smoke IMAGINATION=keyframes
+	$(MAKE) refit TASK=tiny SCALE=tiny EXP=outputs/smoke IMAGINATION=keyframes REFIT_EPISODES=1 \
+	  REFIT_REFLECTOR_ARGS=eta_folds=0
 
 # Training curves of every run of an experiment (TensorBoard event files in each run's work dir).
 tensorboard: setup
