@@ -56,8 +56,9 @@ expert-table: setup
 STAGE_ARGS = +task=$(TASK) scale=$(SCALE) experiment_dir=$(EXP)
 # Collections go on for 32 steps after success: the reflector's positive frames. IMAGINATION: where LOOP's imagined
 # rollouts start (starts: the paper's episode starts; keyframes: real keyframes, a bounded horizon and the paired-replay
-# guard, conf/imagination/).
+# guard, conf/imagination/); LOOP_ARGS: further post_train_loop settings (here and in `make refit`).
 IMAGINATION ?= starts
+LOOP_ARGS ?=
 pipeline: setup
 	$(PY) -m stages.collect $(STAGE_ARGS) source=expert post_success_steps=32
 	$(PY) -m stages.train_policy $(STAGE_ARGS)
@@ -66,7 +67,7 @@ pipeline: setup
 	$(PY) -m stages.train_reflector $(STAGE_ARGS)
 	# does the imagined env judge like the real one? (the SFT policy's imagined rollouts, paired replay)
 	$(PY) -m stages.evaluate_imagination $(STAGE_ARGS)
-	$(PY) -m stages.post_train_loop $(STAGE_ARGS) imagination=$(IMAGINATION)
+	$(PY) -m stages.post_train_loop $(STAGE_ARGS) imagination=$(IMAGINATION) $(LOOP_ARGS)
 	# termination=all: each episode once to the horizon, oracle / fixed / reflector read off it
 	for policy in sft post_trained; do \
 	  $(PY) -m stages.evaluate $(STAGE_ARGS) policy_from=$$policy termination=all || exit 1; done
@@ -85,7 +86,7 @@ refit: setup
 	$(PY) -m stages.train_worldsim $(STAGE_ARGS) policy_collections=all $(REFIT_ARGS)
 	$(PY) -m stages.train_reflector $(STAGE_ARGS) policy_collections=all $(REFIT_REFLECTOR_ARGS)
 	$(PY) -m stages.post_train_loop $(STAGE_ARGS) policy_from=post_trained policy_collections=all \
-	  imagination=$(IMAGINATION)
+	  imagination=$(IMAGINATION) $(LOOP_ARGS)
 	$(PY) -m stages.evaluate $(STAGE_ARGS) policy_from=post_trained termination=all
 
 # Verdict fidelity and the world model as a policy evaluator: each policy at each Laplace noise scale acts
@@ -224,10 +225,12 @@ rl-figures: setup
 	  --json results/rl_recipes --figure docs/img/rl_curves_es.png --markdown results/rl_recipes/curves_es.md
 
 # The same pipeline on the tiny task and scale, with the imagined route of the peers (keyframes, the guard) and one
-# refit round: minutes, proves the plumbing.
+# refit round: minutes, proves the plumbing. The tiny models' imagined verdicts all agree, so group filtering would
+# drop every group and the guard would never see an update: the smoke keeps every group (rl.filter_groups=false).
+SMOKE_ROUTE = IMAGINATION=keyframes LOOP_ARGS=rl.filter_groups=false
 smoke:
-	$(MAKE) pipeline TASK=tiny SCALE=tiny EXP=outputs/smoke IMAGINATION=keyframes
-	$(MAKE) refit TASK=tiny SCALE=tiny EXP=outputs/smoke IMAGINATION=keyframes REFIT_EPISODES=1 \
+	$(MAKE) pipeline TASK=tiny SCALE=tiny EXP=outputs/smoke $(SMOKE_ROUTE)
+	$(MAKE) refit TASK=tiny SCALE=tiny EXP=outputs/smoke $(SMOKE_ROUTE) REFIT_EPISODES=1 \
 	  REFIT_REFLECTOR_ARGS=eta_folds=0
 
 # Training curves of every run of an experiment (TensorBoard event files in each run's work dir).

@@ -399,8 +399,8 @@ def run_metrics(cfg: DictConfig, contract, trainer, device) -> dict:
             "imagined_success": by_step("imagined_success"),
             # evaluation: monitoring only, never a training signal
             "real_episodes": (real_evaluations and real_evaluations * cfg.eval.init_states * len(contract_task_ids(contract)))
-            + sum(h.get("paired_episodes", 0) + h.get("guard_episodes", 0) + h.get("validation_episodes", 0)
-                  for h in history),
+            + int(sum(h.get("paired_episodes", 0) + h.get("guard_episodes", 0) + h.get("validation_episodes", 0)
+                      for h in history)),  # a count (the history keeps the guard's as a float among its stats)
             "guard_hack_rate": by_step("guard_hack_rate"), "rolled_back": sum(h.get("rolled_back", 0) for h in history),
             "paired_hack_rate": by_step("paired_hack_rate"), "paired_imagined_mixed": by_step("paired_imagined_mixed"),
             "paired_real_mixed": by_step("paired_real_mixed"),

@@ -383,6 +383,7 @@ def test_the_paired_replay_guard_measures_the_update_and_undoes_one_that_follows
     metrics = post_train_loop(cfg("post_train_loop", exp, *LOOP, "rl.iterations=1", "eval.every=0", "eta=0.0",
                                   "rl.guard_contexts=1", "rl.guard_rollouts=2", "rl.guard_max_hack_rate=0.5"))
     assert metrics["guard_hack_rate"] == {"1": 1.0} and metrics["real_episodes"] == 2  # 1 context x 2, replayed
+    assert isinstance(metrics["real_episodes"], int)  # a count, though the history keeps the guard's among float stats
     assert metrics["rolled_back"] == 1
     with pytest.raises(ConfigError, match="guard_contexts replays imagined rollouts"):
         post_train_loop(cfg("post_train_loop", exp, *LOOP, "env=real", "rl.guard_contexts=1"))
