@@ -52,7 +52,8 @@ def test_loop_records_a_post_trained_policy_with_its_real_success_curve(trained,
     # and in imagination, on fixed contexts and noise: SFT (0) vs the evaluation points
     assert set(metrics["imagined_reward"]) == set(metrics["imagined_success"]) == {"0", "2"}
     assert all(0.0 <= v <= 1.0 for v in [*metrics["imagined_reward"].values(), *metrics["imagined_success"].values()])
-    # beside each real evaluation, the imagined rollouts of the (2) contexts x 2 (scale=tiny) replayed for real
+    # beside each real evaluation, the imagined rollouts of the (2) contexts x 2 (scale=tiny) replayed for real: the hack rate
+    assert set(metrics["paired_hack_rate"]) == {"0", "2"}
     assert metrics["real_episodes"] == 2 * 1 + 2 * (2 * 2)  # 2 evaluations x (1 init state + 2 x 2 paired replays)
     # a sample of imagined rollouts at iteration 0 and at the evaluation, as MCAP, in the manifest
     imagined = sorted(m.root / f.path for f in rec.files("imagined"))
