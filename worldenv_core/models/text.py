@@ -58,20 +58,20 @@ def _path(folder: Path, instruction: str) -> Path:
 def _read(path: Path) -> torch.Tensor | None:
     try:
         vec = np.load(path, allow_pickle=False)
-    except (OSError, ValueError):  # absent, or torn by a writer killed before atomic writes existed
+    except (OSError, ValueError):  # absent, or not a .npy file (damaged outside this code: writes are atomic)
         return None
     return torch.from_numpy(vec) if vec.shape == (EMBED_DIM,) and vec.dtype == np.float32 else None
 
 
 def _write(path: Path, vec: torch.Tensor) -> None:
-    from worldenv_core.files import write_bytes_atomic
+    from worldenv_core.files import DiskFullError, write_bytes_atomic
 
     buf = io.BytesIO()
-    np.save(buf, vec.numpy().astype(np.float32))
+    np.save(buf, vec.numpy())
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         write_bytes_atomic(path, buf.getvalue())
-    except OSError as e:  # a read-only or full home: the embedding is still returned, only not kept
+    except (OSError, DiskFullError) as e:  # a read-only or full home: the embedding is still returned, only not kept
         log.debug("instruction embedding not cached at %s: %s", path, e)
 
 
@@ -89,11 +89,12 @@ class InstructionEncoder:
         if missing:
             folder = cache_dir()
             for s in missing:
-                vec = _read(_path(folder, s)) if folder is not None else None
+                path = _path(folder, s) if folder is not None else None
+                vec = _read(path) if path is not None else None
                 if vec is None:
                     vec = _minilm().encode([s], convert_to_tensor=True, normalize_embeddings=True,
                                            show_progress_bar=False)[0].detach().cpu().float()
-                    if folder is not None:
-                        _write(_path(folder, s), vec)
+                    if path is not None:
+                        _write(path, vec)
                 self._cache[s] = vec
         return torch.stack([self._cache[s] for s in instructions])
