@@ -227,14 +227,14 @@ rl-figures: setup
 # The same pipeline on the tiny task and scale, with the imagined route of the peers (keyframes, the guard) and one
 # refit round: minutes, proves the plumbing. The tiny models' imagined verdicts all agree, so group filtering would
 # drop every group and the guard would never see an update: the smoke keeps every group (rl.filter_groups=false).
-# Its refit round trains a smaller world model (the same code, a third of the steps) and keeps the reflector's eta.
+# Its refit round keeps the reflector's eta.
 # LOOP's own real evaluations (eval.every; tested in tests/stages/post_train_loop) are left to the evaluate stage
 # after it: they were most of the smoke's LOOP time, and CI is kept under 25 minutes.
 SMOKE_ROUTE = IMAGINATION=keyframes LOOP_ARGS="rl.filter_groups=false eval.every=0"
 smoke:
 	$(MAKE) pipeline TASK=tiny SCALE=tiny EXP=outputs/smoke $(SMOKE_ROUTE)
 	$(MAKE) refit TASK=tiny SCALE=tiny EXP=outputs/smoke $(SMOKE_ROUTE) REFIT_EPISODES=1 \
-	  REFIT_ARGS="ae.steps=50 flow.steps=100" REFIT_REFLECTOR_ARGS=eta_folds=0
+	  REFIT_REFLECTOR_ARGS=eta_folds=0
 
 # Training curves of every run of an experiment (TensorBoard event files in each run's work dir).
 tensorboard: setup

@@ -51,8 +51,10 @@ def episode_frames(cfg) -> int:
 
 def validate(cfg: DictConfig) -> None:
     require_task(cfg)
-    for key in ("rollouts", "horizon"):
-        positive_int(cfg, key)
+    positive_int(cfg, "horizon")
+    if positive_int(cfg, "rollouts") < 2:  # they are drawn as LOOP draws them, in RLOO groups
+        raise ConfigError(f"rollouts must be at least 2 (each context's imagined rollouts are an RLOO group), "
+                          f"got {cfg.rollouts}")
     positive_int(cfg, "paired_policies")
     for key in ("closed_loop_rollouts", "gifs", "contexts.init_states", "contexts.episodes_per_task",
                 "contexts.episode_frames"):

@@ -119,7 +119,7 @@ def test_a_rerun_reuses_the_pairs_and_bad_settings_fail_first(paired):
     for overrides, match in ((["noise_scales=[0]"], "noise_scales must be positive"),
                              (["horizons=[5]"], "multiples of the chunk"), (["eta=2"], "eta"),
                              (["contexts.init_states=0", "contexts.episodes_per_task=0"], "no contexts"),
-                             (["contexts.depth=[0.9,0.5]"], "contexts.depth")):
+                             (["contexts.depth=[0.9,0.5]"], "contexts.depth"), (["rollouts=1"], "rollouts must be at least 2")):
         with pytest.raises(ConfigError, match=match):
             evaluate_imagination(stage_cfg("evaluate_imagination", exp, *PAIRED, *overrides))
 
