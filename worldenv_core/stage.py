@@ -68,6 +68,15 @@ def positive_int(cfg: DictConfig, key: str, allow_zero: bool = False) -> int:
     return value
 
 
+def group_size(cfg: DictConfig, key: str) -> int:
+    """Rollouts per context at `key`: drawn as RLOO groups, whose baseline averages the other N - 1, so N >= 2."""
+    value = OmegaConf.select(cfg, key)
+    if not isinstance(value, int) or isinstance(value, bool) or value < 2:
+        raise ConfigError(f"{key} must be at least 2 (each context's rollouts are an RLOO group: the baseline "
+                          f"averages the other N - 1), got {value!r}")
+    return value
+
+
 def one_of(cfg: DictConfig, key: str, choices) -> str:
     """The setting at `key`, or a ConfigError naming it and its choices."""
     value = OmegaConf.select(cfg, key)

@@ -29,8 +29,8 @@ from worldenv_core.manifest import StageRun, config_hash, sha256_file
 from worldenv_core.models.checkpoint import WEIGHTS, load_checkpoint, read_config
 from worldenv_core.models.text import InstructionEncoder
 from worldenv_core.rl.termination import check_eta, reflector_eta
-from worldenv_core.stage import (POLICY_SOURCES, ConfigError, positive_int, require_task, resolve_checkpoint, resolved,
-                                 start, task_contract, work_dir)
+from worldenv_core.stage import (POLICY_SOURCES, ConfigError, group_size, positive_int, require_task, resolve_checkpoint,
+                                 resolved, start, task_contract, work_dir)
 from worldenv_core.training import pick_device
 
 # 2: each benchmark init state's replays told apart by task. Pairs files and finished runs of an earlier
@@ -52,9 +52,7 @@ def episode_frames(cfg) -> int:
 def validate(cfg: DictConfig) -> None:
     require_task(cfg)
     positive_int(cfg, "horizon")
-    if positive_int(cfg, "rollouts") < 2:  # they are drawn as LOOP draws them, in RLOO groups
-        raise ConfigError(f"rollouts must be at least 2 (each context's imagined rollouts are an RLOO group), "
-                          f"got {cfg.rollouts}")
+    group_size(cfg, "rollouts")  # drawn as LOOP draws them
     positive_int(cfg, "paired_policies")
     for key in ("closed_loop_rollouts", "gifs", "contexts.init_states", "contexts.episodes_per_task",
                 "contexts.episode_frames"):

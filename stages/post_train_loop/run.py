@@ -49,8 +49,8 @@ from worldenv_core.rl.filtered_bc import SuccessBuffer
 from worldenv_core.rl.loop import OPTIMIZERS, check_success_range, make_optimizer
 from worldenv_core.rl.real_rollouts import retire
 from worldenv_core.rl.termination import check_eta
-from worldenv_core.stage import (ConfigError, one_of, positive_int, require_task, resolve_checkpoint, resolve_policy,
-                                 resolved, start, task_contract, work_dir)
+from worldenv_core.stage import (ConfigError, group_size, one_of, positive_int, require_task, resolve_checkpoint,
+                                 resolve_policy, resolved, start, task_contract, work_dir)
 from worldenv_core.tracking import make_tracker
 from worldenv_core.training import Trainer, pick_device, planned_steps, planned_total
 
@@ -97,11 +97,9 @@ def validate(cfg: DictConfig) -> None:
     positive_int(cfg, "eval.paired_contexts", allow_zero=True)
     positive_int(cfg, "rl.mid_episode_frames", allow_zero=True)
     one_of(cfg, "policy_collections", POLICY_COLLECTIONS)
-    if cfg.eval.imagined_contexts and cfg.eval.imagined_rollouts < 2:
-        raise ConfigError(f"eval.imagined_rollouts must be at least 2, got {cfg.eval.imagined_rollouts}")
-    if not isinstance(cfg.rl.n_rollouts, int) or cfg.rl.n_rollouts < 2:
-        raise ConfigError(f"rl.n_rollouts must be at least 2 (the RLOO baseline averages the other N - 1), "
-                          f"got {cfg.rl.n_rollouts}")
+    if cfg.eval.imagined_contexts:
+        group_size(cfg, "eval.imagined_rollouts")
+    group_size(cfg, "rl.n_rollouts")
     try:
         if cfg.eta is not None:  # null: the reflector's own
             check_eta(cfg.eta)

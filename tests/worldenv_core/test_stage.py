@@ -2,7 +2,7 @@
 import pytest
 from omegaconf import OmegaConf
 
-from worldenv_core.stage import ConfigError, one_of, work_dir
+from worldenv_core.stage import ConfigError, group_size, one_of, work_dir
 
 
 def test_a_choice_outside_its_set_is_named_with_the_choices():
@@ -10,6 +10,14 @@ def test_a_choice_outside_its_set_is_named_with_the_choices():
     assert one_of(cfg, "rl.contexts", ("episodes", "placements")) == "episodes"
     with pytest.raises(ConfigError, match=r"policy_collections must be one of \['latest', 'all'\], got 'every'"):
         one_of(cfg, "policy_collections", ("latest", "all"))
+
+
+def test_a_group_of_rollouts_needs_two_for_its_leave_one_out_baseline():
+    cfg = OmegaConf.create({"rl": {"n_rollouts": 2}, "one": 1, "flag": True, "half": 2.5})
+    assert group_size(cfg, "rl.n_rollouts") == 2
+    for key, shown in (("one", "1"), ("flag", "True"), ("half", "2.5"), ("absent", "None")):
+        with pytest.raises(ConfigError, match=f"^{key} must be at least 2 .*RLOO.*got {shown}$"):
+            group_size(cfg, key)
 
 
 def test_work_dir_depends_on_settings_and_inputs_not_their_order():
