@@ -24,13 +24,24 @@ def tile(frames: list[np.ndarray], cols: int | None = None) -> np.ndarray:
     return grid
 
 
-def montage_video(videos: list[np.ndarray], path: str | Path, max_frames: int = 60, fps: int = 10) -> Path:
+MONTAGE_FRAMES = 60  # a montage's frames at most: 6 s at 10 fps, whatever the episodes' lengths
+
+
+def video_picks(length: int, frames: int | None = None) -> np.ndarray:
+    """Which of a video's `length` frames a montage of `frames` (default: as many as it shows of
+    this video alone) plays: evenly spaced, first and last included. A caller that renders frames
+    only to show them renders these (a 280-step episode: 60 renders, not 280)."""
+    n = min(MONTAGE_FRAMES, length) if frames is None else frames
+    return np.linspace(0, length - 1, n).round().astype(int)
+
+
+def montage_video(videos: list[np.ndarray], path: str | Path, max_frames: int = MONTAGE_FRAMES, fps: int = 10) -> Path:
     """Play several episodes side by side: each video (T, H, W, 3) is resampled to the same
     number of frames, so short and long episodes start and end together."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     n = min(max_frames, max(len(v) for v in videos))
-    picks = [np.linspace(0, len(v) - 1, n).round().astype(int) for v in videos]
+    picks = [video_picks(len(v), n) for v in videos]
     frames = [tile([v[idx[t]] for v, idx in zip(videos, picks)]) for t in range(n)]
     tmp = path.with_name(path.stem + ".tmp" + path.suffix)
     imageio.mimsave(tmp, frames, duration=1000 / fps, loop=0) if path.suffix == ".gif" else imageio.mimsave(tmp, frames, fps=fps)

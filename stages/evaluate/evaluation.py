@@ -16,7 +16,7 @@ from worldenv_core.manifest import StageRecord
 from worldenv_core.stats import paired_success_test
 from worldenv_core.report import POLICIES, TERMINATIONS, ReportContext, markdown_table, newest, short_run, titled
 from worldenv_core.rl.termination import StopOutcome, termination_metrics
-from worldenv_core.viz import figure, montage_video, save_figure
+from worldenv_core.viz import figure, montage_video, save_figure, video_picks
 
 
 def summarise(rows: list[dict]) -> dict:
@@ -77,8 +77,9 @@ def record_mode(stage, mode: str, rows: list[dict], videos: dict, setting: dict,
         stage.add_output(out_dir / name, kind="report")
     for (tid, i), frames in sorted(videos.items()):
         r = next(r for r in rows if r["task_id"] == tid and r["init_state"] == i)
-        if mode != "fixed":  # the rollout ran to the horizon; show it up to where this mode stopped
-            frames = frames[:r["steps"] + 1]
+        # the episode up to where this mode stopped (fixed: the horizon), as many frames as a GIF plays: the
+        # job rendered just those (frame index -> image; an array in jobs kept before it did, read the same)
+        frames = np.stack([frames[j] for j in video_picks(r["steps"] + 1)])
         path = montage_video([frames], out_dir / "videos" / f"task{tid:02d}_init{i:02d}_{'success' if r['success'] else 'failure'}.gif")
         stage.add_output(path, kind="video")
     stage.metrics.update({k: v for k, v in summary.items() if k != "per_task"})

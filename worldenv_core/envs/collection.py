@@ -200,6 +200,7 @@ def evaluate_policy_task(job: PolicyEvalJob) -> dict:
     from worldenv_core.envs.recording import policy_episode
     from worldenv_core.rl.termination import ReflectorStop
     from worldenv_core.rl.termination import episode_outcomes
+    from worldenv_core.viz import video_picks
 
     c = job.contract
     env = cached_env(c.suite, job.task_id, c.cameras, c.image_size, render=True)
@@ -228,13 +229,19 @@ def evaluate_policy_task(job: PolicyEvalJob) -> dict:
                 **({"placement_seed": placement} if placement is not None else {}),
                 "ever_succeeded": bool(any(flags)), "first_success_step": flags.index(True) if any(flags) else None,
                 "error": traj.error, "seconds": time.perf_counter() - t0}
+        episode = []
         for mode in (("oracle", "fixed", "reflector") if watch else (job.termination,)):
             # a single-mode episode ended where that mode stops, so its last frame is judged
             m = modes[mode] if watch else {**modes["fixed"], "stop_step": modes["reflector"]["stop_step"]}
-            rows.append({**base, "termination": mode, "success": traj.error is None and m["success"],
-                         "steps": m["steps"], "stop_step": m["stop_step"] if mode == "reflector" else None,
-                         **({"reflector_scores": [round(x, 4) for x in scores]} if mode == "reflector" else {})})
+            episode.append({**base, "termination": mode, "success": traj.error is None and m["success"],
+                            "steps": m["steps"], "stop_step": m["stop_step"] if mode == "reflector" else None,
+                            **({"reflector_scores": [round(x, 4) for x in scores]} if mode == "reflector" else {})})
+        rows += episode
         if i in job.video_ids and traj.frames:
-            states = np.stack([f.sim_state for f in traj.frames])
-            videos[i] = env.render_states(states, [c.cameras[0]], known=traj.images)[c.cameras[0]]
+            # only the frames the GIFs play (each mode's episode, resampled to a montage's length): frame
+            # index -> image; a frame the policy saw live is not redrawn
+            shown = sorted({int(j) for r in episode for j in video_picks(r["steps"] + 1)})
+            states = np.stack([traj.frames[j].sim_state for j in shown])
+            known = {k: traj.images[j] for k, j in enumerate(shown) if j in traj.images}
+            videos[i] = dict(zip(shown, env.render_states(states, [c.cameras[0]], known=known)[c.cameras[0]]))
     return {"rows": rows, "videos": videos}
