@@ -12,7 +12,7 @@ export MUJOCO_GL ?= egl
 export HF_HUB_OFFLINE := 1
 export TOKENIZERS_PARALLELISM := false
 
-.PHONY: setup test test-fast faults smoke pipeline refit exploration rl-real rl-figures suites suites-table suites-pro eval-release research-checkpoints act-checkpoint fidelity bench cost-model expert-table tensorboard clean
+.PHONY: setup test test-fast faults smoke pipeline refit exploration rl-real rl-figures suites suites-table suites-pro suites-pro-table eval-release research-checkpoints act-checkpoint act-post-trained fidelity bench cost-model expert-table tensorboard clean
 
 setup: $(STAMP)
 
@@ -128,19 +128,30 @@ eval-release: setup
 # perturbed suites the benchmark registers for it (LIBERO-PRO: <suite>_swap, _lan, _object, _task), oracle
 # termination, the source suite's step limit, the first PRO_INIT init states per task (evaluations resume and
 # reuse finished jobs); then results/suites-pro/suites_pro.md (and .json) beside each suite's own evaluation (make
-# eval-release), kept in the repository as results/suites.md is; keep the evaluations too (analysis.keep).
+# eval-release), kept in the repository as results/suites.md is; keep the evaluations too (analysis.keep), and
+# `make suites-pro-table` writes the table from every kept one.
+# LeRobot's ACT where released (checkpoints/<suite>/act_sft, act_post_trained: `make act-checkpoint act-post-trained`)
+# is evaluated the same way into outputs/release-<suite>-act and gets rows of its own.
 # make suites-pro PRO_SUITES=libero_spatial PRO_INIT=10
 PRO_SUITES ?= $(SUITES)
 PRO_PERTURBATIONS ?= swap lan object task
 PRO_INIT ?= 50
 suites-pro: setup
-	@for suite in $(PRO_SUITES); do for p in $(PRO_PERTURBATIONS); do for policy in sft post_trained; do \
-	  if [ -d checkpoints/$$suite/$$policy ]; then \
-	    echo "evaluating checkpoints/$$suite/$$policy on $${suite}_$$p"; \
-	    $(PY) -m stages.evaluate +task=$$suite experiment_dir=outputs/release-$$suite policy_from=checkpoints/$$suite/$$policy \
+	@for suite in $(PRO_SUITES); do for release in "" act_; do for p in $(PRO_PERTURBATIONS); do \
+	  for policy in sft post_trained; do folder=checkpoints/$$suite/$$release$$policy; \
+	  exp=outputs/release-$$suite$${release:+-act}; \
+	  if [ -d $$folder ]; then \
+	    echo "evaluating $$folder on $${suite}_$$p"; \
+	    $(PY) -m stages.evaluate +task=$$suite experiment_dir=$$exp policy_from=$$folder \
 	      policy_label=$$policy eval_suite=$${suite}_$$p termination=oracle init_states=$(PRO_INIT) || exit 1; \
-	  else echo "checkpoints/$$suite/$$policy: not released"; fi; done; done; done
-	$(PY) -m stages.suites --perturbed results/suites-pro $(foreach t,$(PRO_SUITES),$(t)=outputs/release-$(t))
+	  elif [ -z "$$release" ]; then echo "$$folder: not released"; fi; done; done; done; done
+	$(PY) -m stages.suites_pro results/suites-pro $(foreach t,$(PRO_SUITES),$(t)=outputs/release-$(t)) \
+	  $$(for t in $(PRO_SUITES); do [ -d outputs/release-$$t-act ] && echo $$t:ACT=outputs/release-$$t-act; done)
+
+# The same table from the evaluations kept in the repository (results/<suite>/evaluate-*, kept with analysis.keep):
+# every kept oracle evaluation of a released checkpoint on a perturbed suite; no simulator, seconds.
+suites-pro-table: setup
+	$(PY) -m stages.suites_pro --kept results/suites-pro $(foreach t,$(PRO_SUITES),$(t)=results/$(t))
 
 # The research variants (checkpoints/README.md, "Research variants"): out of the tree, each kept for one
 # figure; extracted here at their paths from the commit that last held them (needs the full history).
@@ -181,6 +192,15 @@ act-checkpoint:
 	@git cat-file -e $(ACT_REV)^{commit} 2>/dev/null || { echo "commit $(ACT_REV) is not in this clone: \
 	fetch the full history (git fetch --unshallow) first"; exit 1; }
 	@git archive $(ACT_REV) checkpoints/libero_spatial/act_sft | tar -x && echo "checkpoints/libero_spatial/act_sft"
+
+# ACT post-trained (results/lerobot_native.md): ACT's SFT moved by its real-route ES campaign, whose ledger the
+# repository keeps (per iteration: contexts, direction seeds, outcomes), so the policy is rebuilt bit for bit here
+# instead of kept as a second 31.6 MB checkpoint; written at its path (git-ignored).
+ACT_LEDGER = results/rl_recipes/es_many_pairs_act_sft_seed0_ledger
+ACT_ITERATIONS ?= 20
+act-post-trained: setup act-checkpoint
+	$(PY) -m analysis.ledger_policy --policy checkpoints/libero_spatial/act_sft --ledger $(ACT_LEDGER) \
+	  --upto $(ACT_ITERATIONS) --out checkpoints/libero_spatial/act_post_trained
 
 # LOOP with the true reward in the real simulator from the released SFT policy (the RL recipe's campaign,
 # results/rl_campaign.md): resumable, the same command continues from the last iteration.

@@ -149,33 +149,3 @@ def test_a_kept_verdict_drops_the_pairs_whose_real_side_belonged_to_another_task
     (folder / "pairs.json").write_text(json.dumps({"p": {"rows": rows}}))
     (v,) = kept_rows(spec)[1]
     assert v["rollouts"] == 4 and v["contexts"] == "starts"
-
-
-def test_the_perturbed_suite_table_pairs_each_perturbation_beside_the_own_suite(tmp_path):
-    """`--perturbed`: per suite evaluated on, SFT and post-trained paired by episode; a policy not
-    evaluated there (not released) leaves its cell so named, and the own suite comes first."""
-    from worldenv_core.manifest import Manifest, StageRun
-
-    m = _experiment(tmp_path / "a")  # own suite: SFT 1 of 2, post-trained 2 of 2
-    runs = {("sft", "libero_object_swap"): [True, True, False, False],
-            ("post_trained", "libero_object_swap"): [True, True, True, True],
-            ("sft", "libero_object_lan"): [False, True, False, False]}
-    for (policy, suite), success in runs.items():
-        with StageRun(m, "evaluate", {"task": "tiny", "scale": "tiny", "termination": "oracle", "policy": policy,
-                                      "eval_suite": suite}, {}) as s:
-            folder = tmp_path / "a" / "pro" / policy / suite
-            folder.mkdir(parents=True)
-            (folder / "results.json").write_text(json.dumps({"suite": suite, "max_steps": 280,
-                                                             "success_rate": sum(success) / 4}))
-            (folder / "episodes.json").write_text(json.dumps([{"task_id": 0, "init_state": i, "success": ok}
-                                                              for i, ok in enumerate(success)]))
-            s.add_output(folder / "results.json", kind="report")
-            s.add_output(folder / "episodes.json", kind="report")
-    main(["--perturbed", str(tmp_path / "out"), f"tiny={tmp_path / 'a'}"])
-    rows = json.loads((tmp_path / "out" / "suites_pro.json").read_text())
-    assert [(r["suite"], r["perturbation"]) for r in rows] == [("libero_object", "none"), ("libero_object_lan", "lan"),
-                                                               ("libero_object_swap", "swap")]
-    assert rows[2]["paired"] == {"sft": 0.5, "post_trained": 1.0, "episodes": 4, "only_a": 0, "only_b": 2, "p_value": 0.5}
-    text = (tmp_path / "out" / "suites_pro.md").read_text()
-    assert "| tiny | libero_object_lan | lan | 280 | 25.0 % (4) | not released |  |  |  |" in text
-    assert "| tiny | libero_object_swap | swap | 280 | 50.0 % (4) | 100.0 % (4) | +50.0 | 0 / 2 | 0.5 |" in text

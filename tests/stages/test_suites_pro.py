@@ -1,0 +1,82 @@
+"""The perturbed-suite table: each release's SFT and post-trained policies paired per perturbed suite,
+from experiments or from the evaluations kept in the repository."""
+import json
+
+import pytest
+
+from stages.suites_pro import main as suites_pro
+from tests.stages.test_report import _experiment
+
+
+def test_the_perturbed_suite_table_pairs_each_perturbation_beside_the_own_suite(tmp_path):
+    """`--perturbed`: per suite evaluated on, SFT and post-trained paired by episode; a policy not
+    evaluated there (not released) leaves its cell so named, and the own suite comes first."""
+    from worldenv_core.manifest import Manifest, StageRun
+
+    m = _experiment(tmp_path / "a")  # own suite: SFT 1 of 2, post-trained 2 of 2
+    runs = {("sft", "libero_object_swap"): [True, True, False, False],
+            ("post_trained", "libero_object_swap"): [True, True, True, True],
+            ("sft", "libero_object_lan"): [False, True, False, False]}
+    for (policy, suite), success in runs.items():
+        with StageRun(m, "evaluate", {"task": "tiny", "scale": "tiny", "termination": "oracle", "policy": policy,
+                                      "eval_suite": suite}, {}) as s:
+            folder = tmp_path / "a" / "pro" / policy / suite
+            folder.mkdir(parents=True)
+            (folder / "results.json").write_text(json.dumps({"suite": suite, "max_steps": 280,
+                                                             "success_rate": sum(success) / 4}))
+            (folder / "episodes.json").write_text(json.dumps([{"task_id": 0, "init_state": i, "success": ok}
+                                                              for i, ok in enumerate(success)]))
+            s.add_output(folder / "results.json", kind="report")
+            s.add_output(folder / "episodes.json", kind="report")
+    suites_pro([str(tmp_path / "out"), f"tiny={tmp_path / 'a'}"])
+    rows = json.loads((tmp_path / "out" / "suites_pro.json").read_text())
+    assert [(r["suite"], r["perturbation"]) for r in rows] == [("libero_object", "none"), ("libero_object_lan", "lan"),
+                                                               ("libero_object_swap", "swap")]
+    assert rows[2]["paired"] == {"sft": 0.5, "post_trained": 1.0, "episodes": 4, "only_a": 0, "only_b": 2, "p_value": 0.5}
+    text = (tmp_path / "out" / "suites_pro.md").read_text()
+    assert "| tiny | the project's | libero_object_lan | lan | 280 | 25.0 % (4) | not released |  |  |  |" in text
+    assert "| tiny | the project's | libero_object_swap | swap | 280 | 50.0 % (4) | 100.0 % (4) | +50.0 | 0 / 2 | 0.5 |" in text
+    # another release of the same suite (`<task>:<label>`), its rows after the first's and named by its label
+    suites_pro([str(tmp_path / "out"), f"tiny={tmp_path / 'a'}", f"tiny:ACT={tmp_path / 'a'}"])
+    rows = json.loads((tmp_path / "out" / "suites_pro.json").read_text())
+    assert [r["release"] for r in rows] == ["the project's"] * 3 + ["ACT"] * 3
+    assert "| tiny | ACT | libero_object_swap | swap | 280 | 50.0 % (4) | 100.0 % (4) | +50.0 | 0 / 2 | 0.5 |" in (
+        tmp_path / "out" / "suites_pro.md").read_text()
+
+
+def _kept(root, name, suite, policy, success, termination="oracle"):
+    folder = root / f"evaluate-{name}"
+    folder.mkdir(parents=True)
+    (folder / "results.json").write_text(json.dumps({"suite": suite, "policy": policy, "termination": termination,
+                                                     "max_steps": 220, "success_rate": sum(success) / len(success)}))
+    (folder / "episodes.json").write_text(json.dumps([{"task_id": 0, "init_state": i, "success": ok}
+                                                      for i, ok in success.items()]))
+
+
+def test_the_kept_table_pools_each_released_side_and_names_the_release(tmp_path):
+    """`--kept`: no experiment, only results/<suite>/evaluate-*; a side's kept evaluations pool (init states
+    0-1 + 2-3), ACT's released folders get rows of their own, and what is no released checkpoint, no
+    perturbed suite or no oracle termination stays out."""
+    root = tmp_path / "libero_spatial"
+    ck = "checkpoints/libero_spatial"
+    _kept(root, "a", "libero_spatial_lan", f"{ck}/sft", {0: False, 1: False})
+    _kept(root, "b", "libero_spatial_lan", f"{ck}/sft", {2: True, 3: False})
+    _kept(root, "c", "libero_spatial_lan", f"{ck}/post_trained", {0: True, 1: True, 2: True, 3: False})
+    _kept(root, "d", "libero_spatial_lan", f"{ck}/act_sft", {0: False, 1: False, 2: False, 3: False})
+    _kept(root, "e", "libero_spatial_lan", f"{ck}/act_post_trained", {0: True, 1: False, 2: False, 3: False})
+    _kept(root, "f", "libero_spatial_lan", "outputs/x/post_train_loop/0123456789abcdef/policy", {0: True})  # not released
+    _kept(root, "g", "libero_spatial", f"{ck}/sft", {0: True})  # its own suite: the suites table's
+    _kept(root, "h", "libero_spatial_swap", f"{ck}/sft", {0: True}, termination="fixed")
+    suites_pro(["--kept", str(tmp_path / "out"), f"libero_spatial={root}"])
+    rows = json.loads((tmp_path / "out" / "suites_pro.json").read_text())
+    assert [(r["release"], r["suite"]) for r in rows] == [("the project's", "libero_spatial_lan"),
+                                                          ("ACT", "libero_spatial_lan")]
+    assert rows[0]["paired"] == {"sft": 0.25, "post_trained": 0.75, "episodes": 4, "only_a": 0, "only_b": 2,
+                                 "p_value": 0.5}
+    assert rows[1]["sft"] == 0.0 and rows[1]["post_trained"] == 0.25
+    text = (tmp_path / "out" / "suites_pro.md").read_text()
+    assert "| libero_spatial | ACT | libero_spatial_lan | lan | 220 | 0.0 % (4) | 25.0 % (4) | +25.0 | 0 / 1 | 1 |" in text
+    assert "--kept" in text  # says how it was made
+    _kept(root, "i", "libero_spatial_lan", f"{ck}/sft", {3: True})  # an episode twice: which would count?
+    with pytest.raises(Exception, match="init state 3"):
+        suites_pro(["--kept", str(tmp_path / "out"), f"libero_spatial={root}"])
