@@ -194,8 +194,9 @@ act-checkpoint:
 	@git archive $(ACT_REV) checkpoints/libero_spatial/act_sft | tar -x && echo "checkpoints/libero_spatial/act_sft"
 
 # ACT post-trained (results/lerobot_native.md): ACT's SFT moved by its real-route ES campaign, whose ledger the
-# repository keeps (per iteration: contexts, direction seeds, outcomes), so the policy is rebuilt bit for bit here
-# instead of kept as a second 31.6 MB checkpoint; written at its path (git-ignored).
+# repository keeps (per iteration: contexts, direction seeds, outcomes), so the policy is rebuilt here instead of kept
+# as a second 31.6 MB checkpoint (the run's own weights to float32 rounding: at most 3e-8 apart, where ES moved
+# them about 1e-2); written at its path (git-ignored).
 ACT_LEDGER = results/rl_recipes/es_many_pairs_act_sft_seed0_ledger
 ACT_ITERATIONS ?= 20
 act-post-trained: setup act-checkpoint
