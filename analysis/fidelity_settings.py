@@ -30,11 +30,11 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from stages.train_worldsim.evaluation import fidelity_by_horizon
-from stages.train_worldsim.run import task_scenes
 from worldenv_core.cli import user_errors
 from worldenv_core.data.mcap_io import read_episode
 from worldenv_core.errors import ConfigError
 from worldenv_core.data.selection import episode_key, holdout_split
+from worldenv_core.envs.scene_geometry import scenes_file, task_scenes
 from worldenv_core.kinematics.arm import SerialArm
 from worldenv_core.kinematics.camera import PinholeCamera
 from worldenv_core.kinematics.next_state import NextStateModel
@@ -70,7 +70,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     cameras = {int(t): PinholeCamera.from_dict(c) for t, c in meta["cameras"].items()}
     arms = {int(t): SerialArm.from_dict(a) for t, a in (meta.get("arms") or {}).items()}
     if set(arms) != set(cameras):  # a model saved before arms were kept: its scenes' arms, for the arm's region
-        arms = task_scenes(task_contract(cfg), cfg.camera, sorted(cameras))[1]
+        arms = task_scenes(task_contract(cfg), cfg.camera, sorted(cameras), scenes_file(cfg.experiment_dir) if cfg.get("experiment_dir") else None)[1]
     print(f"{args.model or args.record or 'the newest train_worldsim'}: {len(held_eps)} held-out episodes, "
           f"{cfg.fidelity.starts_per_episode} starts each\n")
     print("| detail gate | sampling steps | noise scale | static snap | horizon | PSNR model | PSNR copy-last | "

@@ -28,6 +28,7 @@ from stages.train_worldsim.training import (ae_phase, episode_chunks, flow_phase
                                             rollout_phase, snapshots, with_refiner)
 from worldenv_core.contract import TaskContract
 from worldenv_core.data.selection import POLICY_COLLECTIONS, collected_episodes, episode_key, load_split
+from worldenv_core.envs.scene_geometry import scenes_file, task_scenes
 from worldenv_core.kinematics.arm import SerialArm
 from worldenv_core.kinematics.camera import PinholeCamera
 from worldenv_core.kinematics.next_state import NextStateModel
@@ -96,21 +97,6 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"flow.ema must be in [0, 1), got {cfg.flow.ema}")
 
 
-def task_scenes(contract: TaskContract, camera: str, task_ids: list[int]) -> tuple[dict[int, PinholeCamera],
-                                                                                  dict[int, SerialArm]]:
-    """Each task's camera and arm as the simulator has them (fixtures differ between scenes, cameras and
-    the robot's mount may too)."""
-    from worldenv_core.envs.libero_env import LiberoEnv
-
-    cameras, arms = {}, {}
-    for tid in task_ids:
-        with LiberoEnv(contract.suite, tid, cameras=(), render=False) as env:
-            frame = env.reset(init_state=0)
-            cameras[tid] = PinholeCamera.from_sim(env.sim, camera, contract.image_size)
-            arms[tid] = SerialArm.from_env(env, frame)
-    return cameras, arms
-
-
 def run(cfg: DictConfig) -> dict:
     packed = bool(cfg.latents_from)  # a GPU host: the pack is the data, and there is no simulator
     manifest = start(cfg, validate)
@@ -150,7 +136,8 @@ def run(cfg: DictConfig) -> dict:
             arms = {int(t): SerialArm.from_dict(a) for t, a in (base_meta.get("arms") or {}).items()}
             kinematics = NextStateModel(**base_meta["kinematics"])
         else:
-            cameras, arms = task_scenes(contract, cfg.camera, sorted({ep.meta.task_id for ep in episodes + held_eps}))
+            cameras, arms = task_scenes(contract, cfg.camera, sorted({ep.meta.task_id for ep in episodes + held_eps}),
+                                        scenes_file(cfg.experiment_dir))
             kinematics = NextStateModel.fit(episodes)
             log.info("kinematics fitted on %d episodes: %s", len(episodes), kinematics)
 
@@ -231,7 +218,7 @@ def scene_arms(cfg, contract: TaskContract, pack, cameras: dict) -> dict[int, Se
             raise ConfigError(f"{cfg.latents_from} carries no arm for every task: write the pack again with this "
                               "version (`latents_to=`) to train a model that draws the arm")
         return {int(t): SerialArm.from_dict(a) for t, a in pack.arms.items()}
-    return task_scenes(contract, cfg.camera, sorted(cameras))[1]
+    return task_scenes(contract, cfg.camera, sorted(cameras), scenes_file(cfg.experiment_dir))[1]
 
 
 def record_fidelity(stage, work, ema, kinematics, cameras, held_eps, final, cfg, arms=None) -> None:
@@ -255,7 +242,7 @@ def pack_latents(stage, cfg, model, base: str, base_meta: dict, episodes, keys: 
     pack; nothing is trained, and nothing recorded (no later stage may take the export for a model)."""
     latents = [encode_episode_frames(model, ep.images[base_meta["camera"]]) for ep in episodes]
     arms = base_meta.get("arms") or {str(t): a.to_dict() for t, a in task_scenes(
-        contract, base_meta["camera"], sorted({ep.meta.task_id for ep in episodes}))[1].items()}  # for a model drawing the arm
+        contract, base_meta["camera"], sorted({ep.meta.task_id for ep in episodes}), scenes_file(cfg.experiment_dir))[1].items()}  # for a model drawing the arm
     out = write_latent_pack(cfg.latents_to, latents, episodes, keys, base, base_meta["camera"], contract.meta(), arms)
     stage.not_recorded = f"it exported the training set to {out}"
     stage.metrics.update({"latent_pack": str(out), "episodes": len(episodes), "frames": sum(len(z) for z in latents),
