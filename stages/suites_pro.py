@@ -86,7 +86,8 @@ def kept_perturbed_rows(folder: str | Path, task: str) -> list[dict]:
     rows = []
     for release, suite in sorted(groups, key=lambda k: (order.index(k[0]), k[1])):
         outcomes = {side: pooled_episodes(None, names)[0] for side, names in groups[(release, suite)].items()}
-        rows.append(_row(task, release, suite, False, steps[suite], outcomes))
+        rows.append({**_row(task, release, suite, False, steps[suite], outcomes), "missing": "not run"})  # here a
+        # side with no kept evaluation is one not run yet (a release's other side is kept, so it is released)
     return rows
 
 
@@ -97,7 +98,7 @@ def perturbed_table(rows: list[dict]) -> list[str]:
         out.append([r["task"], r.get("release", PROJECT_RELEASE), r["suite"], r["perturbation"], r.get("max_steps") or "",
                     f"{_pct(r.get('sft'))} ({r.get('sft_episodes', 0)})" if "sft" in r else "not run",
                     f"{_pct(r.get('post_trained'))} ({r.get('post_trained_episodes', 0)})" if "post_trained" in r
-                    else "not released",
+                    else r.get("missing", "not released"),
                     f"{100 * (t['post_trained'] - t['sft']):+.1f}" if t else "", f"{t['only_a']} / {t['only_b']}" if t else "",
                     format(t["p_value"], ".3g") if t else ""])
     return markdown_table(["source suite", "policies", "evaluated on", "perturbation", "step limit", "SFT (episodes)",

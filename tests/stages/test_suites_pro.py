@@ -77,6 +77,10 @@ def test_the_kept_table_pools_each_released_side_and_names_the_release(tmp_path)
     text = (tmp_path / "out" / "suites_pro.md").read_text()
     assert "| libero_spatial | ACT | libero_spatial_lan | lan | 220 | 0.0 % (4) | 25.0 % (4) | +25.0 | 0 / 1 | 1 |" in text
     assert "--kept" in text  # says how it was made
+    _kept(root, "j", "libero_spatial_swap", f"{ck}/act_sft", {0: False})  # its other side not kept yet
+    suites_pro(["--kept", str(tmp_path / "out"), f"libero_spatial={root}"])
+    assert "| libero_spatial | ACT | libero_spatial_swap | swap | 220 | 0.0 % (1) | not run |" in (
+        tmp_path / "out" / "suites_pro.md").read_text()
     _kept(root, "i", "libero_spatial_lan", f"{ck}/sft", {3: True})  # an episode twice: which would count?
     with pytest.raises(Exception, match="init state 3"):
         suites_pro(["--kept", str(tmp_path / "out"), f"libero_spatial={root}"])
