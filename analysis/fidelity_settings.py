@@ -70,7 +70,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     cameras = {int(t): PinholeCamera.from_dict(c) for t, c in meta["cameras"].items()}
     arms = {int(t): SerialArm.from_dict(a) for t, a in (meta.get("arms") or {}).items()}
     if set(arms) != set(cameras):  # a model saved before arms were kept: its scenes' arms, for the arm's region
-        arms = task_scenes(task_contract(cfg), cfg.camera, sorted(cameras), scenes_file(cfg.experiment_dir) if cfg.get("experiment_dir") else None)[1]
+        cache = scenes_file(cfg.experiment_dir) if cfg.get("experiment_dir") else None
+        arms = task_scenes(task_contract(cfg), cfg.camera, sorted(cameras), cache)[1]
     print(f"{args.model or args.record or 'the newest train_worldsim'}: {len(held_eps)} held-out episodes, "
           f"{cfg.fidelity.starts_per_episode} starts each\n")
     print("| detail gate | sampling steps | noise scale | static snap | horizon | PSNR model | PSNR copy-last | "

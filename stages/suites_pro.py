@@ -86,8 +86,8 @@ def kept_perturbed_rows(folder: str | Path, task: str) -> list[dict]:
     rows = []
     for release, suite in sorted(groups, key=lambda k: (order.index(k[0]), k[1])):
         outcomes = {side: pooled_episodes(None, names)[0] for side, names in groups[(release, suite)].items()}
-        rows.append({**_row(task, release, suite, False, steps[suite], outcomes), "missing": "not run"})  # here a
-        # side with no kept evaluation is one not run yet (a release's other side is kept, so it is released)
+        # a side with no kept evaluation is one not run yet (its release's other side is kept, so it is released)
+        rows.append({**_row(task, release, suite, False, steps[suite], outcomes), "missing": "not run"})
     return rows
 
 

@@ -241,8 +241,9 @@ def pack_latents(stage, cfg, model, base: str, base_meta: dict, episodes, keys: 
     """`latents_to=`: the model's open-loop training set (its held-out episodes left out) as a latent
     pack; nothing is trained, and nothing recorded (no later stage may take the export for a model)."""
     latents = [encode_episode_frames(model, ep.images[base_meta["camera"]]) for ep in episodes]
-    arms = base_meta.get("arms") or {str(t): a.to_dict() for t, a in task_scenes(
-        contract, base_meta["camera"], sorted({ep.meta.task_id for ep in episodes}), scenes_file(cfg.experiment_dir))[1].items()}  # for a model drawing the arm
+    arms = base_meta.get("arms") or {str(t): a.to_dict() for t, a in task_scenes(  # for a model drawing the arm
+        contract, base_meta["camera"], sorted({ep.meta.task_id for ep in episodes}),
+        scenes_file(cfg.experiment_dir))[1].items()}
     out = write_latent_pack(cfg.latents_to, latents, episodes, keys, base, base_meta["camera"], contract.meta(), arms)
     stage.not_recorded = f"it exported the training set to {out}"
     stage.metrics.update({"latent_pack": str(out), "episodes": len(episodes), "frames": sum(len(z) for z in latents),
