@@ -12,7 +12,7 @@ export MUJOCO_GL ?= egl
 export HF_HUB_OFFLINE := 1
 export TOKENIZERS_PARALLELISM := false
 
-.PHONY: setup test test-fast faults smoke pipeline refit exploration rl-real rl-figures suites suites-table suites-pro suites-pro-table eval-release research-checkpoints act-checkpoint act-post-trained fidelity bench cost-model expert-table tensorboard clean
+.PHONY: setup test test-fast faults smoke pipeline refit exploration rl-real rl-figures suites suites-table suites-pro suites-pro-table eval-release research-checkpoints act-checkpoint act-post-trained es-post-trained fidelity bench cost-model expert-table tensorboard clean
 
 setup: $(STAMP)
 
@@ -131,22 +131,25 @@ eval-release: setup
 # eval-release), kept in the repository as results/suites.md is; keep the evaluations too (analysis.keep), and
 # `make suites-pro-table` writes the table from every kept one.
 # LeRobot's ACT where released (checkpoints/<suite>/act_sft, act_post_trained: `make act-checkpoint act-post-trained`)
-# is evaluated the same way into outputs/release-<suite>-act and gets rows of its own.
+# is evaluated the same way into outputs/release-<suite>-act and gets rows of its own; so is the true-reward ES
+# policy (checkpoints/libero_spatial/es_post_trained: `make es-post-trained`) into outputs/release-<suite>-es, paired
+# with the project's SFT.
 # make suites-pro PRO_SUITES=libero_spatial PRO_INIT=10
 PRO_SUITES ?= $(SUITES)
 PRO_PERTURBATIONS ?= swap lan object task
 PRO_INIT ?= 50
 suites-pro: setup
-	@for suite in $(PRO_SUITES); do for release in "" act_; do for p in $(PRO_PERTURBATIONS); do \
+	@for suite in $(PRO_SUITES); do for release in "" act_ es_; do for p in $(PRO_PERTURBATIONS); do \
 	  for policy in sft post_trained; do folder=checkpoints/$$suite/$$release$$policy; \
-	  exp=outputs/release-$$suite$${release:+-act}; \
+	  exp=outputs/release-$$suite$${release:+-$${release%_}}; \
 	  if [ -d $$folder ]; then \
 	    echo "evaluating $$folder on $${suite}_$$p"; \
 	    $(PY) -m stages.evaluate +task=$$suite experiment_dir=$$exp policy_from=$$folder \
 	      policy_label=$$policy eval_suite=$${suite}_$$p termination=oracle init_states=$(PRO_INIT) || exit 1; \
 	  elif [ -z "$$release" ]; then echo "$$folder: not released"; fi; done; done; done; done
 	$(PY) -m stages.suites_pro results/suites-pro $(foreach t,$(PRO_SUITES),$(t)=outputs/release-$(t)) \
-	  $$(for t in $(PRO_SUITES); do [ -d outputs/release-$$t-act ] && echo $$t:ACT=outputs/release-$$t-act; done)
+	  $$(for t in $(PRO_SUITES); do for r in act es; do [ -d outputs/release-$$t-$$r ] && \
+	    echo $$t:$$(echo $$r | tr a-z A-Z)=outputs/release-$$t-$$r; done; done)
 
 # The same table from the evaluations kept in the repository (results/<suite>/evaluate-*, kept with analysis.keep):
 # every kept oracle evaluation of a released checkpoint on a perturbed suite; no simulator, seconds.
@@ -202,6 +205,13 @@ ACT_ITERATIONS ?= 20
 act-post-trained: setup act-checkpoint
 	$(PY) -m analysis.ledger_policy --policy checkpoints/libero_spatial/act_sft --ledger $(ACT_LEDGER) \
 	  --upto $(ACT_ITERATIONS) --out checkpoints/libero_spatial/act_post_trained
+
+# The project's libero_spatial SFT post-trained by the real route's ES with the true reward (77.8 % on the 500,
+# results/rl_campaign.md), rebuilt from its kept ledger like ACT's (7.4 MB; written at its path, git-ignored).
+ES_LEDGER = results/rl_recipes/es_many_pairs_seed0_ledger
+es-post-trained: setup
+	$(PY) -m analysis.ledger_policy --policy checkpoints/libero_spatial/sft --ledger $(ES_LEDGER) \
+	  --upto 20 --out checkpoints/libero_spatial/es_post_trained
 
 # LOOP with the true reward in the real simulator from the released SFT policy (the RL recipe's campaign,
 # results/rl_campaign.md): resumable, the same command continues from the last iteration.

@@ -3,16 +3,19 @@
 (`evaluate eval_suite=...`, the source suite's step limit), paired by episode, beside its own suite.
 Writes `<out>/suites_pro.{md,json}`.
 
-From experiments (`make suites-pro` runs the evaluations into outputs/release-<suite>, and LeRobot's
-ACT into outputs/release-<suite>-act): each side's newest oracle evaluation per evaluated suite. A key
-`<task>:<label>` names another release of the same suite, shown by its label.
+From experiments (`make suites-pro` runs the evaluations into outputs/release-<suite>, LeRobot's ACT
+into outputs/release-<suite>-act and the true-reward ES policy into outputs/release-<suite>-es): each
+side's newest oracle evaluation per evaluated suite. A key `<task>:<label>` names another release of the
+same suite, shown by its label; a release post-trained from another's SFT (SFT_OF) is paired with that
+SFT's evaluations.
 
     python -m stages.suites_pro results/suites-pro libero_spatial=outputs/release-libero_spatial \\
-        libero_spatial:ACT=outputs/release-libero_spatial-act
+        libero_spatial:ACT=outputs/release-libero_spatial-act libero_spatial:ES=outputs/release-libero_spatial-es
 
 From the evaluations kept in the repository (`results/<suite>/evaluate-*`, `analysis.keep`; no
 simulator, seconds; `make suites-pro-table`): every kept oracle evaluation on a perturbed suite of a
-released checkpoint (`checkpoints/<suite>/<folder>`, RELEASES below), pooled per side.
+released checkpoint (`checkpoints/<suite>/<folder>`, RELEASES below), pooled per side; a side with none
+reads "not run" if its checkpoint has a kept evaluation elsewhere, else "not released".
 
     python -m stages.suites_pro --kept results/suites-pro libero_spatial=results/libero_spatial
 """
@@ -33,7 +36,11 @@ from worldenv_core.report import POLICIES, ReportContext, markdown_table
 PROJECT_RELEASE = "the project's"  # the releases' column where a key names no other (`<task>:<label>`)
 # released checkpoint folder (checkpoints/<suite>/<folder>) -> (release, side)
 RELEASES = {"sft": (PROJECT_RELEASE, "sft"), "post_trained": (PROJECT_RELEASE, "post_trained"),
-            "act_sft": ("ACT", "sft"), "act_post_trained": ("ACT", "post_trained")}
+            "act_sft": ("ACT", "sft"), "act_post_trained": ("ACT", "post_trained"),
+            "es_post_trained": ("ES", "post_trained")}
+# releases post-trained from another release's SFT, paired with that SFT's evaluations (ES: the project's SFT moved
+# by the real route's ES with the true reward, `make es-post-trained`)
+SFT_OF = {"ES": PROJECT_RELEASE}
 
 
 def _row(task: str, release: str, suite: str, own: bool, max_steps, outcomes: dict) -> dict:
@@ -48,21 +55,33 @@ def _row(task: str, release: str, suite: str, own: bool, max_steps, outcomes: di
     return row
 
 
-def perturbed_rows(experiment: str | Path, task: str, release: str = PROJECT_RELEASE) -> list[dict]:
-    """One row per suite the task's policies were evaluated on with oracle termination, its own
-    first: each side's success on its newest evaluation there, and the paired test where both ran.
-    release: which policies these are (the project's, or e.g. "ACT"), a column of the table."""
+def _newest_oracle(experiment: str | Path, task: str) -> dict[str, dict]:
+    """evaluated suite ("own suite" for the task's own) -> policy -> (its experiment's report context, its
+    newest oracle evaluation record)."""
     ctx = ReportContext(Manifest(experiment), task, Path(experiment) / "report")
-    found: dict[str, dict] = {}  # evaluated suite -> policy -> newest record
+    found: dict[str, dict] = {}
     for r in ctx.find("evaluate", termination="oracle"):
         if not {"view", "first_init_state"} & set(r.tags) and r.tags.get("policy") in POLICIES:
-            suite = r.tags.get("eval_suite") or "own suite"
-            found.setdefault(suite, {})[r.tags["policy"]] = r
+            found.setdefault(r.tags.get("eval_suite") or "own suite", {})[r.tags["policy"]] = (ctx, r)
+    return found
+
+
+def perturbed_rows(experiment: str | Path, task: str, release: str = PROJECT_RELEASE,
+                   sft_from: str | Path | None = None) -> list[dict]:
+    """One row per suite the task's policies were evaluated on with oracle termination, its own
+    first: each side's success on its newest evaluation there, and the paired test where both ran.
+    release: which policies these are (the project's, or e.g. "ACT"), a column of the table; sft_from:
+    the experiment whose SFT evaluations stand for this release's SFT side (SFT_OF)."""
+    found = _newest_oracle(experiment, task)
+    for suite, sides in (_newest_oracle(sft_from, task) if sft_from is not None else {}).items():
+        if suite in found and "sft" in sides:
+            found[suite].setdefault("sft", sides["sft"])
     rows = []
     for suite in sorted(found, key=lambda k: (k != "own suite", k)):
-        sides = {p: ctx.report_json(r, "episodes.json") for p, r in found[suite].items()}
+        sides = {p: ctx.report_json(r, "episodes.json") for p, (ctx, r) in found[suite].items()}
         outcomes = {p: {(e["task_id"], e["init_state"]): bool(e["success"]) for e in es} for p, es in sides.items() if es}
-        summary = ctx.report_json(next(iter(found[suite].values())), "results.json") or {}
+        ctx, record = next(iter(found[suite].values()))
+        summary = ctx.report_json(record, "results.json") or {}
         own = suite == "own suite"
         rows.append(_row(task, release, summary.get("suite", task) if own else suite, own, summary.get("max_steps"),
                          outcomes))
@@ -74,10 +93,13 @@ def kept_perturbed_rows(folder: str | Path, task: str) -> list[dict]:
     each side's kept oracle evaluations of its released checkpoint, pooled (no episode twice)."""
     groups: dict[tuple[str, str], dict[str, list[str]]] = {}  # (release, suite) -> side -> folders
     steps: dict[str, int] = {}
+    evaluated: set[tuple[str, str]] = set()  # (release, side) with a kept evaluation on any suite
     for results in sorted(Path(folder).glob("evaluate-*/results.json")):
         summary = json.loads(results.read_text())
         suite, policy = summary.get("suite", ""), Path(summary.get("policy", ""))
         released = policy.parent == Path("checkpoints") / task and policy.name in RELEASES
+        if released:
+            evaluated.add(RELEASES[policy.name])
         if summary.get("termination") == "oracle" and suite.startswith(f"{task}_") and released:
             release, side = RELEASES[policy.name]
             groups.setdefault((release, suite), {}).setdefault(side, []).append(str(results.parent))
@@ -85,9 +107,15 @@ def kept_perturbed_rows(folder: str | Path, task: str) -> list[dict]:
     order = list(dict.fromkeys(r for r, _ in RELEASES.values()))
     rows = []
     for release, suite in sorted(groups, key=lambda k: (order.index(k[0]), k[1])):
-        outcomes = {side: pooled_episodes(None, names)[0] for side, names in groups[(release, suite)].items()}
-        # a side with no kept evaluation is one not run yet (its release's other side is kept, so it is released)
-        rows.append({**_row(task, release, suite, False, steps[suite], outcomes), "missing": "not run"})
+        sides = dict(groups[(release, suite)])
+        base = groups.get((SFT_OF.get(release), suite), {})
+        if "sft" in base:
+            sides.setdefault("sft", base["sft"])
+        outcomes = {side: pooled_episodes(None, names)[0] for side, names in sides.items()}
+        # a post-trained side missing here is "not run" where it was evaluated anywhere (its own suite's 500 are
+        # kept for every release), else "not released" (libero_goal's post-training gained nothing, so none was)
+        missing = "not run" if (release, "post_trained") in evaluated else "not released"
+        rows.append({**_row(task, release, suite, False, steps[suite], outcomes), "missing": missing})
     return rows
 
 
@@ -114,7 +142,11 @@ def write_perturbed(out: str | Path, sources: dict[str, str], kept: bool = False
         rows = [row for task, folder in sources.items() for row in kept_perturbed_rows(folder, task)]
         made = f"`python -m stages.suites_pro --kept` (`make suites-pro-table`) from the evaluations kept under `results/`"
     else:
-        rows = [row for key, exp in sources.items() for row in perturbed_rows(exp, *key.split(":", 1))]
+        rows = []
+        for key, exp in sources.items():
+            task, _, label = key.partition(":")
+            base = sources.get(task) if label in SFT_OF else None  # the project's experiment: its SFT side
+            rows += perturbed_rows(exp, task, label or PROJECT_RELEASE, sft_from=base)
         made = "`make suites-pro`"
     write_text_atomic(out / "suites_pro.json", json.dumps(rows, indent=1))
     path = out / "suites_pro.md"
