@@ -82,9 +82,19 @@ def world_model_speed(suite: str, task_id: int, image_size: int, camera: str, re
 
     from worldenv_core.imagination.simulator import ImaginedSimulator
     from worldenv_core.kinematics import NextStateModel, PinholeCamera
-    from worldenv_core.models.checkpoint import load_model
+    from worldenv_core.models.checkpoint import CheckpointError, load_checkpoint
     from worldenv_core.stage import CONF_DIR
 
+    chunk = 8
+    if checkpoint:  # named before the simulator is built: a world model made for other frames times nothing real
+        model, meta = load_checkpoint(checkpoint, "worldsim")
+        if (meta.get("image_size"), meta.get("chunk")) != (image_size, chunk):
+            raise CheckpointError(f"world model {checkpoint} was trained on {meta.get('image_size')}-pixel frames in "
+                                  f"chunks of {meta.get('chunk')}, not {image_size} / {chunk} (--image-size)")
+    else:
+        cfg = OmegaConf.load(CONF_DIR / "worldsim" / "latent_flow.yaml")
+        cfg.image_size, cfg.chunk, cfg.action_dim, cfg.latent_size = image_size, chunk, 7, 16
+        model = instantiate(cfg, _convert_="all").eval()
     env = LiberoEnv(suite, task_id, cameras=[camera], image_size=image_size)
     first = env.reset(init_state=0)
     rng = np.random.default_rng(0)
@@ -93,7 +103,6 @@ def world_model_speed(suite: str, task_id: int, image_size: int, camera: str, re
         env.step(np.r_[rng.uniform(-0.3, 0.3, 6), -1.0])
         env.render()
 
-    chunk = 8
     t = [0]
 
     def real_chunk_step():  # physics every step, a render only where a chunked policy looks
@@ -107,12 +116,6 @@ def world_model_speed(suite: str, task_id: int, image_size: int, camera: str, re
     cam = PinholeCamera.from_sim(env.sim, camera, image_size)
     frame0 = torch.from_numpy(env.render()[camera]).permute(2, 0, 1)
     env.close()
-    if checkpoint:
-        model, _ = load_model(checkpoint, expect={"image_size": image_size, "chunk": chunk})
-    else:
-        cfg = OmegaConf.load(CONF_DIR / "worldsim" / "latent_flow.yaml")
-        cfg.image_size, cfg.chunk, cfg.action_dim, cfg.latent_size = image_size, chunk, 7, 16
-        model = instantiate(cfg, _convert_="all")
     torch.manual_seed(0)
     out = {"real_env_steps_per_s": {"every_frame": round(1000 / real_ms, 2),
                                     "chunk_boundary_frames": round(1000 / real_chunk_ms, 2)},
