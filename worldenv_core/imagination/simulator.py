@@ -41,10 +41,11 @@ from worldenv_core.models.worldsim import WorldSimulator
 @dataclass
 class ChunkResult:
     proprio: torch.Tensor  # (B, K, 7) s_{t+1..t+K}
-    latents: torch.Tensor  # (B, K, C, h, w)
-    action_maps: torch.Tensor  # (B, K, 3, H, W)
+    latents: torch.Tensor  # (B, K, C, h, w); only the positions `rows` where the chunk was not decoded whole
+    action_maps: torch.Tensor  # (B, K, 3, H, W); likewise
     frames: torch.Tensor | None = None  # (B, K, 3, H, W) uint8 ("all") or (B, 1, 3, H, W) ("last")
     joints: torch.Tensor | None = None  # (B, K, 7) the arm's tracked joint angles (a model with `arm_map`)
+    rows: tuple[int, ...] | None = None  # the chunk positions `latents` and `action_maps` hold (None: all K)
 
 
 class ImaginedSimulator:
@@ -139,15 +140,26 @@ class ImaginedSimulator:
         if self.joints is not None:  # the links follow the imagined gripper
             joints = track_rollouts(self.rollout_arms, self.joints, states)
             self.joints = joints[:, -1]
-        maps = self._maps(states, joints)
-        z = self.model.next_chunk(self.latents, self.anchor_latent, maps, actions.float(), steps=self.steps,
-                                  generator=generator, noise_scale=self.noise)
-        self.latents = torch.cat([self.latents, z], dim=1)
+        # Not decoded whole, a chunk is predicted only where later memories read it (`read_rows`: with the default
+        # memory, positions 3 and 7 of 8): each position is predicted on its own from the same memory, so those are
+        # what the whole chunk would hold, at a quarter of the flow network's and the maps' cost. The other
+        # positions stay NaN in the history, which nothing reads.
+        rows = None if decode == "all" else self.model.read_rows
+        pick = slice(None) if rows is None else list(rows)
+        maps = self._maps(states[:, pick], None if joints is None else joints[:, pick])
+        z = self.model.next_chunk(self.latents, self.anchor_latent, maps, actions[:, pick].float(), steps=self.steps,
+                                  generator=generator, noise_scale=self.noise, rows=rows)
+        if rows is None:
+            self.latents = torch.cat([self.latents, z], dim=1)
+        else:
+            full = z.new_full((b, k, *z.shape[2:]), float("nan"))
+            full[:, pick] = z
+            self.latents = torch.cat([self.latents, full], dim=1)
         self.proprio = states[:, -1]
         kept = {"all": slice(None), "last": slice(-1, None), "none": None}[decode]
         frames = (self.render(z[:, kept], maps[:, kept]) * 255).round().to(torch.uint8) if kept is not None else None
         return ChunkResult(proprio=states.float(), latents=z, action_maps=maps, frames=frames,
-                           joints=None if joints is None else joints.float())
+                           joints=None if joints is None else joints.float(), rows=rows)
 
     @torch.no_grad()
     def overwrite_last(self, frames: torch.Tensor) -> None:

@@ -225,6 +225,14 @@ class WorldSimulator(nn.Module):
         """How many past frames the memory reaches back."""
         return max(self.memory_offsets)
 
+    @property
+    def read_rows(self) -> tuple[int, ...]:
+        """The chunk positions that a later chunk's memory reads when rollouts advance a whole chunk at a time
+        (each memory is taken at a chunk's last frame, `o` steps back lands on position K-1 - o mod K): with
+        offsets (0, 4, 8, 16) and K = 8, positions 3 and 7. Imagination that decodes only each chunk's last frame
+        needs no other, so it predicts these alone (`rows` of `next_chunk`)."""
+        return tuple(sorted({self.chunk - 1 - o % self.chunk for o in self.memory_offsets}))
+
     # -- latents -------------------------------------------------------------------------------
     def encode(self, images: torch.Tensor) -> torch.Tensor:
         """(..., 3, H, W) uint8 -> scaled latents (..., C, h, w)."""
@@ -241,11 +249,13 @@ class WorldSimulator(nn.Module):
             x = self.refiner(x, maps.reshape(-1, *maps.shape[-3:]).to(x.dtype))
         return x.reshape(*lead, *x.shape[1:])
 
-    def _condition(self, memory: torch.Tensor, action_maps: torch.Tensor, actions: torch.Tensor | None):
-        """memory (B, M, C, h, w), action_maps (B, K, 3, S, S) -> per-frame conditioning for B*K items."""
+    def _condition(self, memory: torch.Tensor, action_maps: torch.Tensor, actions: torch.Tensor | None,
+                   rows: tuple[int, ...] | None = None):
+        """memory (B, M, C, h, w), action_maps (B, K, 3, S, S) -> per-frame conditioning for B*K items
+        (`rows`: the chunk positions the K maps stand for; default 0..K-1)."""
         b, k = action_maps.shape[:2]
         mem = memory.flatten(1, 2)[:, None].expand(-1, k, -1, -1, -1).flatten(0, 1)
-        index = torch.arange(k, device=memory.device).repeat(b)
+        index = torch.as_tensor(rows if rows is not None else range(k), device=memory.device).repeat(b)
         act = actions.flatten(0, 1).float() if actions is not None else None
         return mem, action_maps.flatten(0, 1).float(), index, act
 
@@ -270,18 +280,26 @@ class WorldSimulator(nn.Module):
     @torch.no_grad()
     def predict_latents(self, memory: torch.Tensor, action_maps: torch.Tensor, actions: torch.Tensor | None = None,
                         steps: int | None = None, generator: torch.Generator | None = None,
-                        noise_scale: float | None = None) -> torch.Tensor:
+                        noise_scale: float | None = None, rows: tuple[int, ...] | None = None) -> torch.Tensor:
         """memory (B, M, C, h, w) scaled latents, action_maps (B, K, 3, S, S) in [0, 1] (S = map_size) ->
         next K latents (B, K, C, h, w), by `steps` Euler steps of the flow from noise of scale
-        `noise_scale` (defaults: the config's)."""
+        `noise_scale` (defaults: the config's). `rows`: only these chunk positions, the maps (and actions)
+        given for them alone -> (B, len(rows), C, h, w), what the whole chunk's prediction holds there (each
+        position is predicted from the same memory on its own, and draws the same noise)."""
         steps = int(steps or self.sampling_steps)
         if steps < 1:
             raise ValueError(f"sampling steps must be >= 1, got {steps}")
         noise_scale = self.noise_scale if noise_scale is None else float(noise_scale)
         b, k = action_maps.shape[:2]
-        mem, maps, index, act = self._condition(memory, action_maps, actions)
-        # rows are rollout-major, so a list of generators (one per rollout group) splits them by group
-        x = random_rows(torch.randn, (b * k, *memory.shape[2:]), generator, device=memory.device) * noise_scale
+        if rows is not None and (len(rows) != k or not all(0 <= r < self.chunk for r in rows)):
+            raise ValueError(f"rows {tuple(rows)} must name the {k} chunk positions (of {self.chunk}) the maps are for")
+        mem, maps, index, act = self._condition(memory, action_maps, actions, rows)
+        # rows are rollout-major, so a list of generators (one per rollout group) splits them by group; a subset of
+        # positions takes its rows of the whole chunk's draw, so it is the same sample
+        x = random_rows(torch.randn, (b * (self.chunk if rows is not None else k), *memory.shape[2:]), generator,
+                        device=memory.device) * noise_scale
+        if rows is not None:
+            x = x.view(b, self.chunk, *x.shape[1:])[:, list(rows)].flatten(0, 1)
         for i in range(steps):
             t = torch.full((b * k,), i / steps, device=x.device)
             x = x + self.velocity(x, t, mem, maps, index, act) / steps
@@ -298,13 +316,14 @@ class WorldSimulator(nn.Module):
     @torch.no_grad()
     def next_chunk(self, latents: torch.Tensor, anchor: torch.Tensor, action_maps: torch.Tensor,
                    actions: torch.Tensor | None = None, steps: int | None = None,
-                   generator: torch.Generator | None = None, noise_scale: float | None = None) -> torch.Tensor:
+                   generator: torch.Generator | None = None, noise_scale: float | None = None,
+                   rows: tuple[int, ...] | None = None) -> torch.Tensor:
         """One open-loop chunk as imagination makes it: latents (B, T, C, h, w) the history so far
         (real, then imagined), anchor (B, C, h, w) the last real latent -> the next K latents, the
         flow's prediction from the history's memory with the static snap applied. Imagined rollouts
         and open-loop training both step through here, so training sees the errors inference makes."""
         z = self.predict_latents(self.memory(latents), action_maps, actions, steps=steps, generator=generator,
-                                 noise_scale=noise_scale)
+                                 noise_scale=noise_scale, rows=rows)
         return snap_static(z, anchor, self.static_snap) if self.static_snap > 0 else z
 
 

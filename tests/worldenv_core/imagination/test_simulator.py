@@ -155,3 +155,29 @@ def test_open_loop_fidelity_scores_the_arms_region_where_it_knows_the_arm_and_th
     ep.joint_pos = np.tile([0.5, 0.6, -0.4, 0.8, 0.3, -0.7, 0.4], (ep.num_frames, 1))  # a real episode's joints
     row = open_loop_fidelity(sim, [ep], horizons=(4,), starts_per_episode=1)["horizons"][4]
     assert -1 <= row["model_ssim_arm"] <= 1 and -1 <= row["copy_ssim_arm"] <= 1 and 0 < row["model_psnr_arm"] < 100
+
+
+def test_a_chunk_not_decoded_whole_is_predicted_only_where_later_memories_read_it():
+    """decode="last" predicts only the chunk positions later memories read (3 and 7 of 8 with the default
+    memory): over several chunks, sampled with seeded generators, its frames and those positions' latents are
+    the whole chunk's, at a quarter of the flow network's rows."""
+    cfg = {**TINY, "chunk": 8, "memory_offsets": (0, 4, 8, 16), "noise_scale": 1.0, "sampling_steps": 2}
+    torch.manual_seed(0)
+    model = WorldSimulator(**cfg)
+    torch.nn.init.normal_(model.velocity.out[-1].weight, std=0.1)  # a zero-initialised head would predict nothing
+    assert model.read_rows == (3, 7) and WorldSimulator(**TINY).read_rows == (1, 3)
+    calls = []
+    model.velocity.register_forward_hook(lambda m, args, out: calls.append(out.shape[0]))
+    actions = torch.randn(4, 2, 8, 7, generator=torch.Generator().manual_seed(1)) * 0.5
+    out = {}
+    for decode in ("all", "last"):
+        sim = ImaginedSimulator(model, NextStateModel(), camera(2.0))
+        sim.reset(torch.randint(0, 255, (2, 3, 3, 32, 32), dtype=torch.uint8, generator=torch.Generator().manual_seed(2)),
+                  torch.tensor([[0.0, 0.0, 1.0, 3.14, 0.0, 0.0, 1.0]] * 2))
+        gens = [torch.Generator().manual_seed(10 + i) for i in range(2)]
+        out[decode] = [sim.step(a, decode=decode, generator=gens) for a in actions]
+    for full, part in zip(out["all"], out["last"]):
+        assert part.rows == (3, 7) and part.latents.shape[1] == 2
+        assert torch.allclose(part.latents, full.latents[:, [3, 7]], atol=1e-5)
+        assert (part.frames.int() - full.frames[:, -1:].int()).abs().max() <= 1  # the policy's frame
+    assert calls[:8] == [2 * 8] * 8 and calls[8:] == [2 * 2] * 8  # 2 rollouts x rows, 2 Euler steps, 4 chunks
