@@ -66,7 +66,8 @@ class ImaginedSimulator:
         self.anchor: tuple[torch.Tensor, torch.Tensor] | None = None  # (reconstruction, detail) of the last real frame
         self.anchor_latent: torch.Tensor | None = None  # (B, C, h, w) the last real frame's latent
         self.device = torch.device(device)
-        self.latents: torch.Tensor | None = None  # (B, T, C, h, w), all frames so far
+        # (B, T, C, h, w), all frames so far (NaN where a chunk was not decoded whole and no memory reads)
+        self.latents: torch.Tensor | None = None
         self.proprio: torch.Tensor | None = None
         self.carry = None
         self.rollout_cameras: list[PinholeCamera] | None = None  # per rollout, when they differ
@@ -190,7 +191,10 @@ class ImaginedSimulator:
             return x
         recon, detail = (a[:, None] for a in self.anchor)
         change = (x - recon).abs().mean(dim=2, keepdim=True).flatten(0, 1)
-        change = torch.nn.functional.max_pool2d(change, 5, stride=1, padding=2).view(*x.shape[:2], 1, *x.shape[3:])
+        # the 5x5 maximum as a 5x1 then a 1x5 one: the same numbers, about 0.7 of the time at 128 pixels
+        change = torch.nn.functional.max_pool2d(change, (5, 1), stride=1, padding=(2, 0))
+        change = torch.nn.functional.max_pool2d(change, (1, 5), stride=1, padding=(0, 2))
+        change = change.view(*x.shape[:2], 1, *x.shape[3:])
         keep = (1 - change / self.detail_gate).clamp(min=0)
         return (x + keep * detail).clamp(0, 1)
 
