@@ -172,8 +172,8 @@ def test_a_chunk_not_decoded_whole_is_predicted_only_where_later_memories_read_i
     out = {}
     for decode in ("all", "last"):
         sim = ImaginedSimulator(model, NextStateModel(), camera(2.0))
-        sim.reset(torch.randint(0, 255, (2, 3, 3, 32, 32), dtype=torch.uint8, generator=torch.Generator().manual_seed(2)),
-                  torch.tensor([[0.0, 0.0, 1.0, 3.14, 0.0, 0.0, 1.0]] * 2))
+        frames = torch.randint(0, 255, (2, 3, 3, 32, 32), dtype=torch.uint8, generator=torch.Generator().manual_seed(2))
+        sim.reset(frames, torch.tensor([[0.0, 0.0, 1.0, 3.14, 0.0, 0.0, 1.0]] * 2))
         gens = [torch.Generator().manual_seed(10 + i) for i in range(2)]
         out[decode] = [sim.step(a, decode=decode, generator=gens) for a in actions]
     for full, part in zip(out["all"], out["last"]):
