@@ -145,7 +145,8 @@ def write_perturbed(out: str | Path, sources: dict[str, str], kept: bool = False
         rows = []
         for key, exp in sources.items():
             task, _, label = key.partition(":")
-            base = sources.get(task) if label in SFT_OF else None  # the project's experiment: its SFT side
+            of = SFT_OF.get(label)  # the release whose SFT side this one shares, keyed as the sources are
+            base = None if of is None else sources.get(task if of == PROJECT_RELEASE else f"{task}:{of}")
             rows += perturbed_rows(exp, task, label or PROJECT_RELEASE, sft_from=base)
         made = "`make suites-pro`"
     write_text_atomic(out / "suites_pro.json", json.dumps(rows, indent=1))
