@@ -23,12 +23,13 @@ def replay_checks_file(cfg) -> Path:
     return Path(cfg.experiment_dir) / "cache" / "replay_checks.json"
 
 
-def simulator_versions() -> str:
-    """What a replay's outcome depends on besides the file: the physics and the robot's controllers."""
+def simulator_versions(also: tuple[str, ...] = ()) -> str:
+    """What a replay's outcome depends on besides the file: the physics and the robot's controllers (and the
+    packages `also` names), as `name==version` joined by commas, `?` for one not installed."""
     from importlib.metadata import PackageNotFoundError, version
 
     out = []
-    for name in ("mujoco", "robosuite"):
+    for name in ("mujoco", "robosuite", *also):
         try:
             out.append(f"{name}=={version(name)}")
         except PackageNotFoundError:

