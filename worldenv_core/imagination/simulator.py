@@ -150,12 +150,11 @@ class ImaginedSimulator:
         maps = self._maps(states[:, pick], None if joints is None else joints[:, pick])
         z = self.model.next_chunk(self.latents, self.anchor_latent, maps, actions[:, pick].float(), steps=self.steps,
                                   generator=generator, noise_scale=self.noise, rows=rows)
-        if rows is None:
-            self.latents = torch.cat([self.latents, z], dim=1)
-        else:
+        full = z
+        if rows is not None:
             full = z.new_full((b, k, *z.shape[2:]), float("nan"))
             full[:, pick] = z
-            self.latents = torch.cat([self.latents, full], dim=1)
+        self.latents = torch.cat([self.latents, full], dim=1)
         self.proprio = states[:, -1]
         kept = {"all": slice(None), "last": slice(-1, None), "none": None}[decode]
         frames = (self.render(z[:, kept], maps[:, kept]) * 255).round().to(torch.uint8) if kept is not None else None
